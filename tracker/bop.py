@@ -1,0 +1,302 @@
+"""BOP file formats: scene_camera / scene_gt / scene_gt_info / models_info JSON and the
+results CSV (``scene_id,im_id,obj_id,score,R,t,time``).
+
+Formats: https://github.com/thodan/bop_toolkit/blob/master/docs/bop_datasets_format.md
+Everything that reads user files raises :class:`UserError` with the file (and line) at fault.
+"""
+from __future__ import annotations
+
+import csv
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .errors import UserError
+from .geometry import is_rotation
+
+IMAGE_EXTS = (".png", ".jpg", ".jpeg")
+
+
+# --------------------------------------------------------------------------- JSON helpers
+
+
+def _load_json(path: Path):
+    if not path.is_file():
+        raise UserError(f"missing file: {path}")
+    try:
+        return json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise UserError(f"{path}: not valid JSON ({e})") from None
+
+
+def _dump_json(path: Path, obj) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(obj, indent=1, default=_json_default))
+    tmp.replace(path)
+    return path
+
+
+def _json_default(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, np.generic):
+        return o.item()
+    raise TypeError(f"cannot serialise {type(o).__name__}")
+
+
+# --------------------------------------------------------------------------- records
+
+
+@dataclass
+class GtInstance:
+    obj_id: int
+    R: np.ndarray  # 3x3 model -> camera
+    t: np.ndarray  # (3,) mm
+    info: dict = field(default_factory=dict)  # scene_gt_info entry when present
+
+
+def load_scene_camera(path) -> dict[int, dict]:
+    """{im_id: {"K": 3x3, "depth_scale": float, ...}} from scene_camera.json."""
+    path = Path(path)
+    raw = _load_json(path)
+    out = {}
+    for k, v in raw.items():
+        try:
+            K = np.asarray(v["cam_K"], dtype=np.float64).reshape(3, 3)
+        except (KeyError, ValueError, TypeError):
+            raise UserError(f"{path}: image {k} has no valid 'cam_K' (9 numbers)") from None
+        entry = dict(v)
+        entry["K"] = K
+        out[int(k)] = entry
+    return out
+
+
+def save_scene_camera(path, cameras: dict[int, dict]) -> Path:
+    obj = {}
+    for im_id in sorted(cameras):
+        c = cameras[im_id]
+        e = {"cam_K": np.asarray(c["K"], dtype=float).ravel().tolist(),
+             "depth_scale": float(c.get("depth_scale", 1.0))}
+        for k in ("cam_R_w2c", "cam_t_w2c"):
+            if k in c:
+                e[k] = np.asarray(c[k], dtype=float).ravel().tolist()
+        obj[str(im_id)] = e
+    return _dump_json(path, obj)
+
+
+def load_scene_gt(path, info_path=None) -> dict[int, list[GtInstance]]:
+    path = Path(path)
+    raw = _load_json(path)
+    info = _load_json(Path(info_path)) if info_path is not None and Path(info_path).is_file() else {}
+    out = {}
+    for k, insts in raw.items():
+        lst = []
+        infos = info.get(k, [])
+        for j, g in enumerate(insts):
+            try:
+                R = np.asarray(g["cam_R_m2c"], dtype=np.float64).reshape(3, 3)
+                t = np.asarray(g["cam_t_m2c"], dtype=np.float64).reshape(3)
+                oid = int(g["obj_id"])
+            except (KeyError, ValueError, TypeError):
+                raise UserError(f"{path}: image {k} instance {j} lacks a valid cam_R_m2c / cam_t_m2c / obj_id") from None
+            lst.append(GtInstance(oid, R, t, dict(infos[j]) if j < len(infos) else {}))
+        out[int(k)] = lst
+    return out
+
+
+def save_scene_gt(path, gt: dict[int, list[GtInstance]]) -> Path:
+    obj = {str(k): [{"cam_R_m2c": g.R.ravel().tolist(), "cam_t_m2c": g.t.ravel().tolist(),
+                     "obj_id": int(g.obj_id)} for g in gt[k]] for k in sorted(gt)}
+    return _dump_json(path, obj)
+
+
+def save_scene_gt_info(path, gt: dict[int, list[GtInstance]]) -> Path:
+    keys = ("bbox_obj", "bbox_visib", "px_count_all", "px_count_valid", "px_count_visib", "visib_fract")
+    obj = {str(k): [{kk: g.info[kk] for kk in keys if kk in g.info} for g in gt[k]] for k in sorted(gt)}
+    return _dump_json(path, obj)
+
+
+# --------------------------------------------------------------------------- scenes
+
+
+@dataclass
+class Scene:
+    """A BOP scene folder: ``rgb/``, ``scene_camera.json`` and, when present, ground truth."""
+
+    root: Path
+    cameras: dict[int, dict]
+    gt: dict[int, list[GtInstance]] | None
+    images: dict[int, Path]
+
+    @property
+    def im_ids(self) -> list[int]:
+        return sorted(self.images)
+
+    def K(self, im_id: int) -> np.ndarray:
+        return self.cameras[im_id]["K"]
+
+    def read_rgb(self, im_id: int) -> np.ndarray:
+        """The image as RGB uint8."""
+        p = self.images[im_id]
+        bgr = cv2.imread(str(p), cv2.IMREAD_COLOR)
+        if bgr is None:
+            raise UserError(f"unreadable image: {p}")
+        return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+    @property
+    def has_gt_info(self) -> bool:
+        return (self.root / "scene_gt_info.json").is_file()
+
+
+def load_scene(root, require_gt: bool = False) -> Scene:
+    root = Path(root)
+    if not root.is_dir():
+        raise UserError(f"BOP scene folder not found: {root}")
+    rgb = root / "rgb"
+    if not rgb.is_dir():
+        raise UserError(f"{root}: not a BOP scene (no rgb/ folder)")
+    cameras = load_scene_camera(root / "scene_camera.json")
+    images = {}
+    for p in sorted(rgb.iterdir()):
+        if p.suffix.lower() in IMAGE_EXTS and p.stem.isdigit():
+            images[int(p.stem)] = p
+    if not images:
+        raise UserError(f"{rgb}: no NNNNNN.png / .jpg images")
+    missing = sorted(set(images) - set(cameras))
+    if missing:
+        raise UserError(f"{root}/scene_camera.json has no camera for image(s) {missing[:5]}")
+    gt = None
+    gt_path = root / "scene_gt.json"
+    if gt_path.is_file():
+        gt = load_scene_gt(gt_path, root / "scene_gt_info.json")
+    elif require_gt:
+        raise UserError(f"{root}: missing scene_gt.json (ground truth is needed here)")
+    return Scene(root, cameras, gt, images)
+
+
+# --------------------------------------------------------------------------- models_info
+
+
+def load_models_info(path) -> dict[int, dict]:
+    path = Path(path)
+    raw = _load_json(path)
+    out = {}
+    for k, v in raw.items():
+        if "diameter" not in v:
+            raise UserError(f"{path}: object {k} has no 'diameter'")
+        out[int(k)] = v
+    return out
+
+
+def save_models_info(path, info: dict[int, dict]) -> Path:
+    return _dump_json(path, {str(k): info[k] for k in sorted(info)})
+
+
+def symmetry_transforms(info: dict, continuous_steps: int = 360) -> np.ndarray:
+    """All symmetry transforms of one object as (S, 4, 4), identity first.
+
+    Discrete symmetries are taken as listed; continuous ones are discretised into
+    ``continuous_steps`` rotations about their axis, and combined with the discrete ones,
+    as in bop_toolkit's ``get_symmetry_transformations``.
+    """
+    disc = [np.eye(4)]
+    for s in info.get("symmetries_discrete", []):
+        disc.append(np.asarray(s, dtype=np.float64).reshape(4, 4))
+    conts = [np.eye(4)]
+    from scipy.spatial.transform import Rotation
+    for c in info.get("symmetries_continuous", []):
+        axis = np.asarray(c["axis"], dtype=np.float64)
+        offset = np.asarray(c.get("offset", [0, 0, 0]), dtype=np.float64)
+        for i in range(1, continuous_steps):
+            R = Rotation.from_rotvec(axis / np.linalg.norm(axis) * 2 * np.pi * i / continuous_steps).as_matrix()
+            T = np.eye(4)
+            T[:3, :3] = R
+            T[:3, 3] = offset - R @ offset
+            conts.append(T)
+    return np.array([c @ d for d in disc for c in conts])
+
+
+# --------------------------------------------------------------------------- results CSV
+
+RESULT_HEADER = ["scene_id", "im_id", "obj_id", "score", "R", "t", "time"]
+
+
+@dataclass
+class Estimate:
+    scene_id: int
+    im_id: int
+    obj_id: int
+    score: float
+    R: np.ndarray
+    t: np.ndarray
+    time: float = -1.0
+
+
+def format_result_row(e: Estimate) -> list[str]:
+    return [str(int(e.scene_id)), str(int(e.im_id)), str(int(e.obj_id)), f"{e.score:.6f}",
+            " ".join(f"{v:.8f}" for v in np.asarray(e.R).ravel()),
+            " ".join(f"{v:.6f}" for v in np.asarray(e.t).ravel()), f"{e.time:.6f}"]
+
+
+def write_results(path, estimates) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f, lineterminator="\n")
+        w.writerow(RESULT_HEADER)
+        for e in estimates:
+            w.writerow(format_result_row(e))
+    return path
+
+
+def read_results(path, known_obj_ids=None) -> list[Estimate]:
+    """Parse a BOP results CSV; every problem is reported with its line number."""
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"results file not found: {path}")
+    out = []
+    times: dict[tuple[int, int], tuple[float, int]] = {}
+    with open(path, newline="") as f:
+        rows = csv.reader(f)
+        header = next(rows, None)
+        if header is None:
+            raise UserError(f"{path}: empty file (expected header {','.join(RESULT_HEADER)})")
+        header = [h.strip() for h in header]
+        missing = [h for h in RESULT_HEADER if h not in header]
+        if missing:
+            raise UserError(f"{path}:1: missing column(s) {', '.join(missing)}")
+        col = {h: header.index(h) for h in RESULT_HEADER}
+        for line, row in enumerate(rows, start=2):
+            if not row or all(not c.strip() for c in row):
+                continue
+            if len(row) != len(header):
+                raise UserError(f"{path}:{line}: {len(row)} fields, expected {len(header)}")
+            try:
+                scene_id, im_id, obj_id = (int(row[col[k]]) for k in ("scene_id", "im_id", "obj_id"))
+                score = float(row[col["score"]])
+                R = np.array(row[col["R"]].split(), dtype=np.float64)
+                t = np.array(row[col["t"]].split(), dtype=np.float64)
+                tm = float(row[col["time"]])
+            except ValueError as e:
+                raise UserError(f"{path}:{line}: unparsable value ({e})") from None
+            if R.size != 9 or t.size != 3:
+                raise UserError(f"{path}:{line}: R needs 9 values and t 3, got {R.size} and {t.size}")
+            R = R.reshape(3, 3)
+            if not is_rotation(R, tol=1e-3):
+                raise UserError(f"{path}:{line}: R is not a rotation matrix (orthonormal, det +1)")
+            if not np.all(np.isfinite(t)):
+                raise UserError(f"{path}:{line}: t is not finite")
+            if known_obj_ids is not None and obj_id not in known_obj_ids:
+                raise UserError(f"{path}:{line}: unknown obj_id {obj_id} (models: {sorted(known_obj_ids)})")
+            key = (scene_id, im_id)
+            if key in times and abs(times[key][0] - tm) > 1e-6:
+                raise UserError(f"{path}:{line}: time {tm} differs from {times[key][0]} on line "
+                                f"{times[key][1]} for the same image (scene {scene_id}, im {im_id})")
+            times.setdefault(key, (tm, line))
+            out.append(Estimate(scene_id, im_id, obj_id, score, R, t, tm))
+    return out
