@@ -1,0 +1,164 @@
+"""Command line: a thin layer over the library. ``python app.py --help`` lists the commands."""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+import warnings
+from pathlib import Path
+
+from .errors import NotLanded, UserError
+
+# Commands of CONVENTIONS.md whose implementation has not landed yet, with their issue.
+PENDING = {
+    "track": (7, "the frame loop"),
+    "synth": (3, "synthetic training data"),
+    "train": (5, "autoencoder + regressor training"),
+    "eval": (4, "pose evaluation with the BOP metrics"),
+    "score": (4, "scoring a BOP results CSV"),
+    "bench": (7, "per-stage latency benchmark"),
+    "imu": (8, "IMU comparison"),
+}
+
+
+def _default_run_dir(name: str) -> Path:
+    from .paths import REPO
+    return REPO / "runs" / f"{name}-{time.strftime('%Y%m%d-%H%M%S')}"
+
+
+# --------------------------------------------------------------------------- commands
+
+
+def cmd_demo(args) -> int:
+    """Until the tracker lands: the ground-truth overlay of the bundled LM-O dev scene."""
+    from .paths import lmo_dev_scene, lmo_models
+    from .preview import render_gt_overlays
+    out = Path(args.out) if args.out else _default_run_dir("demo")
+    print("demo: the tracker (issue 7) has not landed yet; rendering the ground-truth poses of the "
+          "LM-O dev scene over its frames instead", file=sys.stderr)
+    s = render_gt_overlays(lmo_dev_scene(), lmo_models(), out, max_frames=args.max_frames)
+    print(f"{s.frames} frames, {s.instances} object instances rendered at their ground-truth poses "
+          f"({s.ms_per_frame_render:.0f} ms/frame render)")
+    print(f"silhouette vs projected-vertex box IoU over the {s.instances_in_view} instances in view: "
+          f"median {s.box_iou_median:.3f}, min {s.box_iou_min:.3f}; "
+          f"object centres inside the image: {s.centres_in_image}/{s.instances}")
+    print(f"overlays: {s.frames_dir}\nmontage:  {s.montage}")
+    return 0
+
+
+def cmd_preview(args) -> int:
+    from .preview import render_gt_overlays
+    out = Path(args.out) if args.out else _default_run_dir("preview")
+    s = render_gt_overlays(args.data, args.models, out, max_frames=args.max_frames)
+    print(f"{s.frames} frames, {s.instances} instances; box IoU median {s.box_iou_median:.3f}; "
+          f"montage: {s.montage}")
+    return 0
+
+
+def cmd_calibrate(args) -> int:
+    from .calibration import calibrate, parse_board
+    from .camera import write_camera
+    if not args.images and args.source is None:
+        raise UserError("calibrate needs --images GLOB or --source SRC")
+    board = parse_board(args.board)
+    res = calibrate(board, args.square, images=args.images, source=args.source, every=args.every,
+                    log=lambda m: print(m, file=sys.stderr))
+    write_camera(args.out, res.camera, {"avg_reprojection_error": res.rms_px, "nframes": len(res.used),
+                                        "board_width": board[0], "board_height": board[1],
+                                        "square_size_mm": args.square})
+    K = res.camera.K
+    print(f"{len(res.used)} views used, {len(res.skipped)} skipped; RMS re-projection error "
+          f"{res.rms_px:.3f} px; fx {K[0, 0]:.2f} fy {K[1, 1]:.2f} cx {K[0, 2]:.2f} cy {K[1, 2]:.2f}")
+    print(f"wrote {args.out}")
+    return 0
+
+
+def cmd_models_info(args) -> int:
+    from .bop import save_models_info
+    from .meshes import compute_models_info, load_models
+    info = compute_models_info(load_models(args.models))
+    save_models_info(args.out, info)
+    for k, v in info.items():
+        n = len(v.get("symmetries_discrete", []))
+        print(f"obj {k}: diameter {v['diameter']:.2f} mm, {n} discrete symmetr{'y' if n == 1 else 'ies'}")
+    print(f"wrote {args.out}")
+    return 0
+
+
+def cmd_pending(args) -> int:
+    issue, what = PENDING[args.command]
+    raise NotLanded(f"'{args.command}' ({what}) has not landed yet: see issue {issue}")
+
+
+# --------------------------------------------------------------------------- parser
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="app.py", description="autopose: real-time monocular 6-DoF "
+                                "pose tracking from an autoencoder latent (Auto-Pose).")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND")
+
+    s = sub.add_parser("demo", help="replay the bundled recording through the pipeline (default)")
+    s.add_argument("--out", help="run folder (default runs/demo-TIMESTAMP)")
+    s.add_argument("--max-frames", type=int, default=None)
+    s.set_defaults(func=cmd_demo)
+
+    s = sub.add_parser("track", help="the frame loop on a camera, video, image folder or BOP scene")
+    s.set_defaults(func=cmd_pending)
+
+    s = sub.add_parser("calibrate", help="checkerboard calibration -> camera file")
+    g = s.add_mutually_exclusive_group()
+    g.add_argument("--images", help="glob of board photos, e.g. 'calib/*.jpg'")
+    g.add_argument("--source", help="video file or camera index")
+    s.add_argument("--board", required=True, help="inner corners COLSxROWS, e.g. 9x6")
+    s.add_argument("--square", type=float, required=True, help="square side in mm")
+    s.add_argument("--out", required=True, help="camera file to write (OpenCV YAML)")
+    s.add_argument("--every", type=int, default=15, help="with --source: use every Nth frame")
+    s.set_defaults(func=cmd_calibrate)
+
+    for name in ("synth", "train", "eval", "score", "bench", "imu"):
+        s = sub.add_parser(name, help=PENDING[name][1])
+        s.set_defaults(func=cmd_pending)
+
+    s = sub.add_parser("preview", help="render a BOP scene's ground-truth poses over its frames")
+    s.add_argument("--data", required=True, help="BOP scene folder")
+    s.add_argument("--models", required=True, help="folder of obj_NNNNNN.ply")
+    s.add_argument("--out", help="output folder")
+    s.add_argument("--max-frames", type=int, default=None)
+    s.set_defaults(func=cmd_preview)
+
+    s = sub.add_parser("models-info", help="compute BOP models_info.json (diameter, box, symmetries)")
+    s.add_argument("--models", required=True, help="folder of obj_NNNNNN.ply")
+    s.add_argument("--out", required=True, help="models_info.json to write")
+    s.set_defaults(func=cmd_models_info)
+    return p
+
+
+def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser()
+    if not argv:
+        argv = ["demo"]
+    args, extra = parser.parse_known_args(argv)
+    if extra and args.func is not cmd_pending:
+        parser.error(f"unrecognized arguments: {' '.join(extra)}")
+    warnings.simplefilter("default")
+    warnings.formatwarning = lambda msg, cat, *a, **k: f"warning: {msg}\n"
+    try:
+        return args.func(args)
+    except NotLanded as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    except UserError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+    except Exception as e:  # a bug, not bad input: one line unless asked for more
+        if os.environ.get("AUTOPOSE_DEBUG"):
+            raise
+        print(f"internal error: {e.__class__.__name__}: {e} (rerun with AUTOPOSE_DEBUG=1 for the traceback)",
+              file=sys.stderr)
+        return 3
