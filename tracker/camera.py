@@ -98,8 +98,9 @@ def _read_opencv_yaml(path: Path) -> Camera:
         d = fs.getNode("distortion_coefficients").mat()
         w = fs.getNode("image_width").real()
         h = fs.getNode("image_height").real()
-    except cv2.error as e:
-        raise UserError(f"{path}: garbled OpenCV camera file ({str(e).strip().splitlines()[-1]})") from None
+    except (cv2.error, SystemError) as e:  # cv2 raises SystemError for some parse errors
+        msg = str(e.__cause__ or e).strip().splitlines() or [e.__class__.__name__]
+        raise UserError(f"{path}: garbled OpenCV camera file ({msg[-1][:100]})") from None
     finally:
         if fs is not None:
             fs.release()

@@ -1,0 +1,128 @@
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from tracker import bop
+from tracker.errors import UserError
+from tracker.geometry import matrix_from_axis_angle, project
+
+
+def test_load_dev_scene(lmo_dev):
+    assert len(lmo_dev.im_ids) == 50
+    assert lmo_dev.im_ids[0] == 3
+    img = lmo_dev.read_rgb(3)
+    assert img.shape == (480, 640, 3) and img.dtype == np.uint8
+    assert np.allclose(lmo_dev.K(3)[0], [572.4114, 0, 325.2611])
+    ids = {g.obj_id for gts in lmo_dev.gt.values() for g in gts}
+    assert ids == {1, 5, 6, 8, 9, 10, 11, 12}
+
+
+def test_scene_round_trip(lmo_dev, tmp_path):
+    bop.save_scene_camera(tmp_path / "scene_camera.json", lmo_dev.cameras)
+    bop.save_scene_gt(tmp_path / "scene_gt.json", lmo_dev.gt)
+    cams = bop.load_scene_camera(tmp_path / "scene_camera.json")
+    gt = bop.load_scene_gt(tmp_path / "scene_gt.json")
+    assert set(cams) == set(lmo_dev.cameras) and np.allclose(cams[8]["K"], lmo_dev.K(8))
+    for k in lmo_dev.gt:
+        for a, b in zip(gt[k], lmo_dev.gt[k]):
+            assert a.obj_id == b.obj_id and np.allclose(a.R, b.R) and np.allclose(a.t, b.t)
+
+
+def test_scene_gt_info_is_attached(tmp_path, lmo_dev):
+    insts = [bop.GtInstance(g.obj_id, g.R, g.t, {"bbox_obj": [1, 2, 3, 4], "visib_fract": 0.5})
+             for g in lmo_dev.gt[3]]
+    bop.save_scene_gt(tmp_path / "scene_gt.json", {3: insts})
+    bop.save_scene_gt_info(tmp_path / "scene_gt_info.json", {3: insts})
+    back = bop.load_scene_gt(tmp_path / "scene_gt.json", tmp_path / "scene_gt_info.json")
+    assert back[3][0].info == {"bbox_obj": [1, 2, 3, 4], "visib_fract": 0.5}
+
+
+@pytest.mark.parametrize("remove", ["rgb", "scene_camera.json"])
+def test_broken_scene_folders(tmp_path, data_dir, remove):
+    dst = tmp_path / "scene"
+    shutil.copytree(data_dir / "lmo" / "dev", dst)
+    p = dst / remove
+    shutil.rmtree(p) if p.is_dir() else p.unlink()
+    with pytest.raises(UserError):
+        bop.load_scene(dst)
+
+
+def test_scene_without_gt_when_gt_is_required(tmp_path, data_dir):
+    dst = tmp_path / "scene"
+    shutil.copytree(data_dir / "lmo" / "dev", dst)
+    (dst / "scene_gt.json").unlink()
+    assert bop.load_scene(dst).gt is None
+    with pytest.raises(UserError, match="scene_gt.json"):
+        bop.load_scene(dst, require_gt=True)
+
+
+def test_corrupt_json_names_the_file(tmp_path):
+    (tmp_path / "scene_camera.json").write_text("{ nope")
+    with pytest.raises(UserError, match="scene_camera.json"):
+        bop.load_scene_camera(tmp_path / "scene_camera.json")
+
+
+def _est(im_id=3, obj_id=1, t=(1.0, 2.0, 900.0), time=0.02):
+    R = matrix_from_axis_angle([0.1, 0.2, 0.3])
+    return bop.Estimate(2, im_id, obj_id, 0.9, R, np.array(t), time)
+
+
+def test_results_csv_round_trip(tmp_path):
+    ests = [_est(3, 1), _est(3, 5, (5, 6, 700)), _est(8, 1, time=0.05)]
+    p = bop.write_results(tmp_path / "r.csv", ests)
+    assert p.read_text().splitlines()[0] == "scene_id,im_id,obj_id,score,R,t,time"
+    back = bop.read_results(p, known_obj_ids={1, 5})
+    assert len(back) == 3
+    for a, b in zip(back, ests):
+        assert (a.scene_id, a.im_id, a.obj_id) == (b.scene_id, b.im_id, b.obj_id)
+        assert np.allclose(a.R, b.R, atol=1e-7) and np.allclose(a.t, b.t, atol=1e-5)
+
+
+@pytest.mark.parametrize("mutate,match", [
+    (lambda lines: ["scene_id,im_id,obj_id,score,R,t"] + [l.rsplit(",", 1)[0] for l in lines[1:]], "missing column"),
+    (lambda lines: lines[:2] + [lines[2].replace("0.9000", "abc")], ":3: unparsable"),
+    (lambda lines: lines[:1] + [lines[1].replace(lines[1].split(",")[4], " ".join(["1"] * 9))] + lines[2:], ":2: R is not a rotation"),
+    (lambda lines: lines[:2] + [lines[2].replace(",0.020000", ",0.030000")], ":3: time"),
+    (lambda lines: lines[:1] + [lines[1].replace("2,3,1,", "2,3,77,", 1)] + lines[2:], ":2: unknown obj_id 77"),
+])
+def test_bad_results_csv_names_the_line(tmp_path, mutate, match):
+    p = bop.write_results(tmp_path / "r.csv", [_est(3, 1), _est(3, 5)])
+    lines = p.read_text().splitlines()
+    p.write_text("\n".join(mutate(lines)) + "\n")
+    with pytest.raises(UserError, match=match):
+        bop.read_results(p, known_obj_ids={1, 5})
+
+
+def test_symmetry_transforms_discretise_continuous_ones():
+    info = {"diameter": 1.0, "symmetries_continuous": [{"axis": [0, 0, 1], "offset": [0, 0, 0]}],
+            "symmetries_discrete": [np.diag([1.0, -1.0, -1.0, 1.0]).ravel().tolist()]}
+    T = bop.symmetry_transforms(info, continuous_steps=36)
+    assert T.shape == (72, 4, 4)
+    assert np.allclose(T[0], np.eye(4))
+    assert all(np.allclose(t[:3, :3] @ t[:3, :3].T, np.eye(3)) for t in T)
+
+
+def test_models_info_round_trip(tmp_path):
+    info = {1: {"diameter": 102.1, "min_x": -1.0}, 10: {"diameter": 164.6}}
+    bop.save_models_info(tmp_path / "models_info.json", info)
+    assert json.loads((tmp_path / "models_info.json").read_text())["10"]["diameter"] == 164.6
+    assert bop.load_models_info(tmp_path / "models_info.json") == info
+
+
+def test_gt_poses_project_onto_the_image(lmo_dev, lmo_models):
+    """Every annotated object whose centre is in view projects to a plausible box."""
+    n_in = 0
+    for im_id in lmo_dev.im_ids:
+        K = lmo_dev.K(im_id)
+        for g in lmo_dev.gt[im_id]:
+            assert 300 < g.t[2] < 2000  # table-top scene, about a metre away
+            c = project(np.zeros((1, 3)), K, g.R, g.t)[0]
+            if 0 <= c[0] < 640 and 0 <= c[1] < 480:
+                n_in += 1
+                uv = project(lmo_models[g.obj_id].vertices, K, g.R, g.t)
+                # the object's own projection surrounds its centre, with a sane size
+                assert (uv.min(0) <= c).all() and (uv.max(0) >= c).all()
+                assert 15 < np.ptp(uv, axis=0).max() < 300
+    assert n_in >= 380  # 391 instances, 7 of them with the centre outside the frame

@@ -1,0 +1,76 @@
+import warnings
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial.distance import pdist
+from scipy.spatial.transform import Rotation
+
+from tracker.errors import UserError
+from tracker.meshes import compute_models_info, diameter, find_discrete_symmetries, load_mesh
+
+# BOP's published models_info.json for LM-O (diameters, mm): an independent reference
+BOP_DIAMETERS = {1: 102.099, 5: 201.404, 6: 154.546, 8: 261.472, 9: 108.999, 10: 164.628,
+                 11: 175.889, 12: 145.543}
+
+
+@pytest.fixture(scope="module")
+def lmo_info(lmo_models):
+    return compute_models_info(lmo_models)
+
+
+def test_diameter_matches_brute_force_and_bop(lmo_models, lmo_info):
+    ape = lmo_models[1].vertices
+    assert diameter(ape) == pytest.approx(pdist(ape).max(), rel=1e-12)
+    for k, d in BOP_DIAMETERS.items():
+        assert lmo_info[k]["diameter"] == pytest.approx(d, rel=1e-3)
+
+
+def test_bounding_boxes(lmo_models, lmo_info):
+    for k, m in lmo_models.items():
+        v = m.vertices
+        i = lmo_info[k]
+        assert i["min_x"] == pytest.approx(v[:, 0].min()) and i["size_z"] == pytest.approx(np.ptp(v[:, 2]))
+
+
+def test_only_eggbox_and_glue_are_symmetric(lmo_models, lmo_info):
+    symmetric = {k for k, i in lmo_info.items() if i.get("symmetries_discrete")}
+    assert symmetric == {10, 11}
+    for k in (10, 11):
+        (T,) = [np.array(s).reshape(4, 4) for s in lmo_info[k]["symmetries_discrete"]]
+        rv = Rotation.from_matrix(T[:3, :3]).as_rotvec()
+        assert np.degrees(np.linalg.norm(rv)) == pytest.approx(180, abs=3)  # a half turn ...
+        assert abs(rv[2]) / np.linalg.norm(rv) > 0.99                       # ... about model z
+        v = lmo_models[k].vertices
+        moved = v @ T[:3, :3].T + T[:3, 3]
+        # the turned model covers the model: mean nearest-vertex distance < 1 % of the diameter
+        from scipy.spatial import cKDTree
+        assert cKDTree(v).query(moved)[0].mean() < 0.01 * lmo_info[k]["diameter"]
+
+
+def test_a_box_is_symmetric_about_every_axis_and_a_wedge_is_not():
+    box = trimesh.creation.box(extents=(100, 60, 40)).subdivide().subdivide().subdivide()
+    assert {s["axis"] for s in find_discrete_symmetries(box.vertices, diameter(box.vertices))} == {"x", "y", "z"}
+    wedge = box.vertices.copy()
+    wedge[:, 2] += 0.6 * wedge[:, 0]  # shear: no longer symmetric about x or z
+    axes = {s["axis"] for s in find_discrete_symmetries(wedge, diameter(wedge))}
+    assert "x" not in axes and "z" not in axes
+
+
+def test_mesh_without_colours_is_grey_with_a_warning(tmp_path):
+    p = tmp_path / "obj_000042.ply"
+    trimesh.creation.icosphere(subdivisions=2, radius=30).export(p)
+    with warnings.catch_warnings(record=True) as w:
+        warnings.simplefilter("always")
+        m = load_mesh(p)
+    assert m.obj_id == 42 and not m.has_colours
+    assert any("no vertex colours" in str(x.message) for x in w)
+    assert np.all(m.mesh.visual.vertex_colors[:, :3] == 160)
+
+
+@pytest.mark.parametrize("content", [b"ply\nformat ascii 1.0\nelement vertex 3\ngarbage", b"\x00" * 100, b""])
+def test_unreadable_meshes(tmp_path, content):
+    p = tmp_path / "obj_000001.ply"
+    p.write_bytes(content)
+    with pytest.raises(UserError):
+        load_mesh(p)

@@ -1,0 +1,36 @@
+import numpy as np
+
+from tracker.geometry import box_from_points, project
+from tracker.preview import box_iou, render_gt_overlays
+from tracker.render import Renderer
+
+
+def test_silhouettes_match_projected_vertices(lmo_dev, lmo_models):
+    im_id = lmo_dev.im_ids[0]
+    K = lmo_dev.K(im_id)
+    gts = lmo_dev.gt[im_id]
+    with Renderer(640, 480, {g.obj_id: lmo_models[g.obj_id].mesh for g in gts}) as r:
+        for g in gts:
+            _, depth = r.render(K, [(g.obj_id, g.R, g.t)], depth_only=True)
+            ys, xs = np.nonzero(depth > 0)
+            rbox = (xs.min(), ys.min(), xs.max() - xs.min() + 1, ys.max() - ys.min() + 1)
+            pbox = box_from_points(project(lmo_models[g.obj_id].vertices, K, g.R, g.t))
+            assert box_iou(rbox, pbox) > 0.9
+            # rendered depth at the silhouette is about the object's distance
+            assert abs(np.median(depth[depth > 0]) - g.t[2]) < 0.6 * np.ptp(lmo_models[g.obj_id].vertices)
+        # instances of the same object twice, and a renderer reused across calls
+        g = gts[0]
+        t2 = g.t + np.array([80.0, 0, 0])
+        _, d2 = r.render(K, [(g.obj_id, g.R, g.t), (g.obj_id, g.R, t2)], depth_only=True)
+        _, d1 = r.render(K, [(g.obj_id, g.R, g.t)], depth_only=True)
+        assert (d2 > 0).sum() > 1.5 * (d1 > 0).sum()
+        rgb, d0 = r.render(K, [])
+        assert (d0 > 0).sum() == 0 and rgb.max() == 0
+
+
+def test_gt_overlay_job(lmo_dev, data_dir, tmp_path):
+    s = render_gt_overlays(data_dir / "lmo" / "dev", data_dir / "lmo" / "models", tmp_path, max_frames=2,
+                           progress=False)
+    assert s.frames == 2 and s.instances == sum(len(lmo_dev.gt[i]) for i in lmo_dev.im_ids[:2])
+    assert s.box_iou_min > 0.85
+    assert (tmp_path / "overlay_montage.png").is_file() and len(list((tmp_path / "overlay").glob("*.png"))) == 2
