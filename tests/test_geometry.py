@@ -1,3 +1,4 @@
+import cv2
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -153,3 +154,31 @@ def test_is_rotation_rejects_reflections_and_garbage():
 def test_square_crop_rejects_empty_boxes():
     with pytest.raises(ValueError):
         G.square_crop((0, 0, 0, 10), 64)
+
+
+@given(boxes, quat, st.floats(-100, 100), st.floats(-100, 100), st.floats(400, 1500))
+def test_crop_intrinsics_project_into_the_crop(box, q, tx, ty, tz):
+    K = np.array([[572.4, 0, 325.3], [0, 573.6, 242.0], [0, 0, 1]])
+    crop = G.square_crop(box, 128)
+    pts = np.random.default_rng(1).uniform(-50, 50, (20, 3))
+    R, t = rot(q), np.array([tx, ty, tz])
+    assert np.allclose(G.project(pts, crop.intrinsics(K), R, t), crop.to_crop(G.project(pts, K, R, t)), atol=1e-6)
+
+
+@given(boxes, st.floats(0.6, 1.0), st.floats(-0.2, 0.2), st.floats(-0.2, 0.2))
+def test_window_within_a_window_crops_the_same(box, shrink, dx, dy):
+    rng = np.random.default_rng(0)
+    img = cv2.GaussianBlur(rng.uniform(0, 255, (480, 640, 3)).astype(np.float32), (0, 0), 3)
+    outer = G.square_crop(box, 256, pad=1.3)
+    x, y, w, h = box
+    inner = G.square_crop((x + dx * w, y + dy * h, w * shrink, h * shrink), 32)
+    direct = G.crop_and_resize(img, inner, interpolation=cv2.INTER_LINEAR)
+    via = G.crop_and_resize(G.crop_and_resize(img, outer, interpolation=cv2.INTER_LINEAR),
+                            inner.within(outer), interpolation=cv2.INTER_LINEAR)
+    # compare where the inner window lies inside the image and inside the outer window
+    pts = inner.to_image(np.stack(np.meshgrid(np.arange(32), np.arange(32)), -1).reshape(-1, 2))
+    ok = ((pts >= 2) & (pts < [638, 478])).all(1) & ((outer.to_crop(pts) >= 1) & (outer.to_crop(pts) < 255)).all(1)
+    if ok.sum() < 50:
+        return
+    diff = np.abs(direct.reshape(-1, 3) - via.reshape(-1, 3))[ok]
+    assert np.median(diff) < 3.0

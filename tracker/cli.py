@@ -13,10 +13,8 @@ from .errors import NotLanded, UserError
 # Commands of CONVENTIONS.md whose implementation has not landed yet, with their issue.
 PENDING = {
     "track": (7, "the frame loop"),
-    "synth": (3, "synthetic training data"),
     "train": (5, "autoencoder + regressor training"),
     "eval": (4, "pose evaluation with the BOP metrics"),
-    "score": (4, "scoring a BOP results CSV"),
     "bench": (7, "per-stage latency benchmark"),
     "imu": (8, "IMU comparison"),
 }
@@ -86,6 +84,34 @@ def cmd_models_info(args) -> int:
     return 0
 
 
+def cmd_synth(args) -> int:
+    from .paths import shared_data
+    from .synth.engine import SynthConfig, generate
+    from .synth.preview import preview
+    obj_ids = [int(x) for x in args.obj_ids.split(",")] if args.obj_ids else None
+    cfg = SynthConfig(models_dir=str(args.models), backgrounds_dir=str(args.backgrounds or shared_data() / "backgrounds"),
+                      seed=args.seed, prior=args.prior, obj_ids=obj_ids)
+    rep = generate(cfg, args.out, args.images, workers=args.workers, command="app.py " + " ".join(sys.argv[1:]))
+    state = "INTERRUPTED after" if rep.interrupted else "wrote"
+    print(f"{state} {rep.images} images, {rep.instances} instances ({rep.crops_visib_ge_0_1} with visib >= 0.1) "
+          f"in {rep.seconds:.0f} s: {rep.images_per_s:.1f} images/s, {rep.crops_per_s:.1f} crops/s, "
+          f"peak RSS {rep.peak_rss_mb_parent:.0f} MB (main) / {rep.peak_rss_mb_worker:.0f} MB (worker)")
+    if args.preview and rep.images:
+        print(f"preview: {preview(args.out, args.preview)}")
+    return 130 if rep.interrupted else 0
+
+
+def cmd_score(args) -> int:
+    from .scoring import score_results, write_metrics_json
+    m = score_results(args.results, args.data, args.models, models_info=args.models_info)
+    write_metrics_json(args.json, m)
+    print(f"{m['n_gt']} ground-truth instances, {m['n_est']} estimates: ADD(I) {m['add_recall']:.3f}, "
+          f"AR_MSSD {m['ar_mssd']:.3f}, AR_MSPD {m['ar_mspd']:.3f}, AR {m['ar']:.3f} "
+          f"(visibility: {m['visibility_source']})")
+    print(f"wrote {args.json}")
+    return 0
+
+
 def cmd_pending(args) -> int:
     issue, what = PENDING[args.command]
     raise NotLanded(f"'{args.command}' ({what}) has not landed yet: see issue {issue}")
@@ -117,7 +143,28 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--every", type=int, default=15, help="with --source: use every Nth frame")
     s.set_defaults(func=cmd_calibrate)
 
-    for name in ("synth", "train", "eval", "score", "bench", "imu"):
+    s = sub.add_parser("synth", help="synthetic, domain-randomised BOP training scenes")
+    s.add_argument("--models", required=True, help="folder of obj_NNNNNN.ply (mm)")
+    s.add_argument("--out", required=True, help="output split folder")
+    s.add_argument("--images", type=int, required=True, help="number of scene images")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--backgrounds", help="folder of background photos (default: the shared data's)")
+    s.add_argument("--prior", choices=["table", "sphere"], default="table",
+                   help="pose prior: objects upright on a table (LM-O) or any orientation (hand-held)")
+    s.add_argument("--obj-ids", help="comma-separated subset of the models' ids")
+    s.add_argument("--workers", type=int, default=2, help="render processes")
+    s.add_argument("--preview", help="PNG montage of samples, boxes, visible fractions and crops")
+    s.set_defaults(func=cmd_synth)
+
+    s = sub.add_parser("score", help="score a BOP results CSV against a BOP scene")
+    s.add_argument("--results", required=True, help="BOP results CSV")
+    s.add_argument("--data", required=True, help="BOP scene folder with ground truth")
+    s.add_argument("--models", required=True, help="folder of obj_NNNNNN.ply")
+    s.add_argument("--models-info", help="models_info.json (default: the models folder's, else computed)")
+    s.add_argument("--json", required=True, help="metrics JSON to write")
+    s.set_defaults(func=cmd_score)
+
+    for name in ("train", "eval", "bench", "imu"):
         s = sub.add_parser(name, help=PENDING[name][1])
         s.set_defaults(func=cmd_pending)
 

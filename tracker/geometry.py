@@ -181,6 +181,17 @@ class SquareCrop:
         return np.array([[s, 0.0, s * (0.5 - self.x0) - 0.5],
                          [0.0, s, s * (0.5 - self.y0) - 0.5]])
 
+    def intrinsics(self, K: np.ndarray) -> np.ndarray:
+        """Intrinsics of a virtual camera that sees exactly this crop (render crops directly)."""
+        A = np.vstack([self.affine(), [0.0, 0.0, 1.0]])
+        return A @ np.asarray(K, dtype=np.float64)
+
+    def within(self, outer: "SquareCrop") -> "SquareCrop":
+        """This window expressed in the pixel frame of the image that ``outer`` produced:
+        cropping outer's output with the result equals cropping the original with self."""
+        s = outer.scale
+        return SquareCrop((self.x0 - outer.x0) * s, (self.y0 - outer.y0) * s, self.side * s, self.size)
+
     def to_crop(self, pts_img: np.ndarray) -> np.ndarray:
         p = np.asarray(pts_img, dtype=np.float64)
         A = self.affine()

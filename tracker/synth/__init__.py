@@ -1,0 +1,1 @@
+"""Synthetic, domain-randomised BOP scenes rendered from meshes."""

@@ -1,0 +1,266 @@
+"""Synthetic BOP splits: scenes of randomly posed objects, rendered, randomised, annotated.
+
+Layout written under OUT (BOP, chunks of 1000 images per scene folder):
+
+    OUT/synth_config.json                 how it was made (prior, seed, counts, command)
+    OUT/NNNNNN/rgb/IIIIII.jpg             640x480 (by default) frames, JPEG at random quality
+    OUT/NNNNNN/mask_visib/IIIIII_KKKKKK.png
+    OUT/NNNNNN/clean/IIIIII_KKKKKK.png    reconstruction target: the object alone, neutral
+                                          light, black background, whole object, CROPxCROP
+    OUT/NNNNNN/scene_camera.json, scene_gt.json, scene_gt_info.json
+    OUT/NNNNNN/clean_crops.json           {im_id: [[x0, y0, side], ...]} window of each clean crop
+
+Every image is a pure function of (seed, global image index): the worker count changes speed,
+never content. Workers (spawn) keep one renderer each for their whole life; they write image
+files, the parent writes the JSON files (rewritten as it goes, so an interrupt loses at most
+the images in flight).
+"""
+from __future__ import annotations
+
+import json
+import multiprocessing as mp
+import os
+import resource
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ..bop import _dump_json
+from ..camera import LMO_K
+from ..errors import UserError
+from ..visibility import scene_visibility
+from . import priors
+from .randomise import (Backgrounds, camera_effects, composite, distractor_meshes, jitter_colours,
+                        list_backgrounds, sample_lights)
+
+CHUNK = 1000
+DISTRACTOR_BASE = 100000  # renderer ids of distractor meshes
+
+
+@dataclass
+class SynthConfig:
+    models_dir: str
+    backgrounds_dir: str
+    seed: int = 0
+    prior: str = "table"
+    width: int = 640
+    height: int = 480
+    K: list = field(default_factory=lambda: LMO_K.tolist())
+    objects_per_image: tuple = (3, 8)
+    distractors_per_image: tuple = (0, 5)
+    p_occluder: float = 0.35
+    crop_size: int = 128  # clean targets, rendered in the visibility window (visibility.WINDOW_PAD)
+    jpeg_quality: tuple = (70, 95)
+    obj_ids: list | None = None
+
+
+@dataclass
+class SynthReport:
+    images: int
+    instances: int
+    crops_visib_ge_0_1: int
+    seconds: float
+    images_per_s: float
+    crops_per_s: float
+    peak_rss_mb_parent: float
+    peak_rss_mb_worker: float
+    workers: int
+    interrupted: bool = False
+
+
+# --------------------------------------------------------------------------- worker side
+
+_W = {}  # per-process state: renderers, meshes, backgrounds
+
+
+def _init_worker(cfg_dict: dict):
+    os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+    import warnings
+    warnings.simplefilter("ignore")  # a colourless mesh warns once in the parent, not per worker
+    cv2.setNumThreads(1)
+    from ..meshes import diameter, load_models
+    from ..render import Renderer
+    cfg = SynthConfig(**cfg_dict)
+    models = load_models(cfg.models_dir, cfg.obj_ids)
+    dis = distractor_meshes(np.random.default_rng([cfg.seed, 7]), 12)
+    meshes = {k: m.mesh for k, m in models.items()}
+    meshes.update({DISTRACTOR_BASE + i: m for i, m in enumerate(dis)})
+    _W.update(
+        cfg=cfg,
+        K=np.asarray(cfg.K, dtype=np.float64),
+        obj_ids=sorted(models),
+        verts={**{k: m.vertices for k, m in models.items()},
+               **{DISTRACTOR_BASE + i: np.asarray(m.vertices) for i, m in enumerate(dis)}},
+        radius={**{k: diameter(m.vertices) / 2 for k, m in models.items()},
+                **{DISTRACTOR_BASE + i: diameter(np.asarray(m.vertices)) / 2 for i, m in enumerate(dis)}},
+        n_dis=len(dis),
+        scene=Renderer(cfg.width, cfg.height, meshes),
+        crop=Renderer(cfg.crop_size, cfg.crop_size, {k: m.mesh for k, m in models.items()}),
+        bgs=Backgrounds(list_backgrounds(cfg.backgrounds_dir)),
+    )
+
+
+def _sample_instances(rng, cfg: SynthConfig):
+    """Targets and distractors with their poses: [(renderer id, R, t)], number of targets."""
+    obj_ids, K = _W["obj_ids"], _W["K"]
+    lo, hi = cfg.objects_per_image
+    n_t = int(min(len(obj_ids), rng.integers(lo, hi + 1)))
+    targets = [int(x) for x in rng.choice(obj_ids, n_t, replace=False)]
+    n_d = int(rng.integers(cfg.distractors_per_image[0], cfg.distractors_per_image[1] + 1))
+    dis = [DISTRACTOR_BASE + int(x) for x in rng.integers(0, _W["n_dis"], n_d)]
+    ids = targets + dis
+    if cfg.prior == "table":
+        poses = priors.sample_table_scene(rng, [_W["verts"][i] for i in ids], [_W["radius"][i] for i in ids])
+    else:
+        poses = priors.sample_sphere_scene(rng, [_W["radius"][i] for i in ids], K, (cfg.width, cfg.height))
+    inst = [(i, R, t) for i, (R, t) in zip(ids, poses)]
+    if rng.random() < cfg.p_occluder and targets:
+        for _ in range(int(rng.integers(1, 3))):
+            tgt = inst[int(rng.integers(n_t))]
+            R, t = priors.table_occluder_pose(rng, tgt[2])
+            inst.append((DISTRACTOR_BASE + int(rng.integers(_W["n_dis"])), R, t))
+    return inst, n_t
+
+
+def render_one(index: int, out_root: str) -> dict:
+    """Render, annotate and write global image ``index``; returns its JSON records."""
+    cfg: SynthConfig = _W["cfg"]
+    K = _W["K"]
+    rng = np.random.default_rng([cfg.seed, index])
+    chunk, im_id = divmod(index, CHUNK)
+    root = Path(out_root) / f"{chunk:06d}"
+    inst, n_t = _sample_instances(rng, cfg)
+    scene, crop_r = _W["scene"], _W["crop"]
+
+    lights, ambient = sample_lights(rng)
+    scene.set_lights(lights)
+    scene.set_ambient(ambient)
+    rgb, depth = scene.render(K, inst)
+    rgb = rgb.copy()
+
+    gts, infos, windows = [], [], []
+    crop_r.set_lights([((0.0, 0.0, 1.0), (1.0, 1.0, 1.0), 2.5)])  # neutral light for the targets
+    crop_r.set_ambient(0.45)
+    labels = scene.render_labels(K, inst)
+    for k, vis in enumerate(scene_visibility(scene, crop_r, K, inst, _W["verts"], n_t, labels, keep_rgb=True)):
+        oid, R, t = inst[k]
+        jitter_colours(rgb, vis.mask_visib, rng)
+        win = vis.window
+        cv2.imwrite(str(root / "clean" / f"{im_id:06d}_{k:06d}.png"),
+                    cv2.cvtColor(vis.alone_rgb, cv2.COLOR_RGB2BGR))
+        cv2.imwrite(str(root / "mask_visib" / f"{im_id:06d}_{k:06d}.png"), vis.mask_visib.astype(np.uint8) * 255)
+        gts.append({"cam_R_m2c": R.ravel().tolist(), "cam_t_m2c": t.ravel().tolist(), "obj_id": oid})
+        infos.append({"bbox_obj": vis.bbox_obj, "bbox_visib": vis.bbox_visib, "px_count_all": vis.px_count_all,
+                      "px_count_valid": vis.px_count_valid, "px_count_visib": vis.px_count_visib,
+                      "visib_fract": round(vis.visib_fract, 6)})
+        windows.append([win.x0, win.y0, win.side])
+
+    bg = _W["bgs"].sample(rng, cfg.width, cfg.height)
+    img = composite(bg, rgb, depth > 0)
+    img = camera_effects(img, rng)
+    q = int(rng.integers(cfg.jpeg_quality[0], cfg.jpeg_quality[1] + 1))
+    cv2.imwrite(str(root / "rgb" / f"{im_id:06d}.jpg"), cv2.cvtColor(img, cv2.COLOR_RGB2BGR),
+                [cv2.IMWRITE_JPEG_QUALITY, q])
+    return {"index": index, "chunk": chunk, "im_id": im_id, "gt": gts, "info": infos, "windows": windows,
+            "cam": {"cam_K": K.ravel().tolist(), "depth_scale": 1.0}}
+
+
+def _render_batch(args):
+    indices, out_root = args
+    return [render_one(i, out_root) for i in indices]
+
+
+# --------------------------------------------------------------------------- parent side
+
+
+class _ChunkWriter:
+    """Collects records and (re)writes each chunk's JSON files."""
+
+    def __init__(self, out: Path):
+        self.out = out
+        self.chunks: dict[int, dict] = {}
+
+    def add(self, rec: dict):
+        c = self.chunks.setdefault(rec["chunk"], {"cam": {}, "gt": {}, "info": {}, "win": {}})
+        k = str(rec["im_id"])
+        c["cam"][k], c["gt"][k], c["info"][k], c["win"][k] = rec["cam"], rec["gt"], rec["info"], rec["windows"]
+
+    def flush(self):
+        for chunk, c in self.chunks.items():
+            root = self.out / f"{chunk:06d}"
+            order = sorted(c["cam"], key=int)
+            for name, key in (("scene_camera", "cam"), ("scene_gt", "gt"), ("scene_gt_info", "info"),
+                              ("clean_crops", "win")):
+                _dump_json(root / f"{name}.json", {k: c[key][k] for k in order})
+
+
+def _peak_rss_mb(who) -> float:
+    return resource.getrusage(who).ru_maxrss / 1024.0
+
+
+def generate(cfg: SynthConfig, out_dir, n_images: int, workers: int = 2, batch: int = 4,
+             progress: bool = True, command: str | None = None) -> SynthReport:
+    if n_images <= 0:
+        raise UserError(f"--images must be positive, got {n_images}")
+    if cfg.prior not in priors.PRIORS:
+        raise UserError(f"unknown prior '{cfg.prior}' (choose from {', '.join(priors.PRIORS)})")
+    list_backgrounds(cfg.backgrounds_dir)  # fail early, in the parent
+    from ..meshes import load_models
+    models = load_models(cfg.models_dir, cfg.obj_ids)  # fail early (and warn once) on bad meshes
+    if cfg.obj_ids is None:
+        cfg.obj_ids = sorted(models)
+    out = Path(out_dir)
+    for chunk in range((n_images - 1) // CHUNK + 1):
+        for sub in ("rgb", "mask_visib", "clean"):
+            (out / f"{chunk:06d}" / sub).mkdir(parents=True, exist_ok=True)
+    meta = {"config": asdict(cfg), "images": n_images, "chunk": CHUNK,
+            "command": command or " ".join(sys.argv), "created": time.strftime("%Y-%m-%d %H:%M:%S")}
+    _dump_json(out / "synth_config.json", meta)
+
+    tasks = [(list(range(i, min(i + batch, n_images))), str(out)) for i in range(0, n_images, batch)]
+    writer = _ChunkWriter(out)
+    done = n_inst = n_crops = 0
+    interrupted = False
+    t0 = time.perf_counter()
+    from tqdm import tqdm
+    bar = tqdm(total=n_images, unit="img", desc="synth", disable=not progress)
+    ctx = mp.get_context("spawn")
+    pool = ctx.Pool(workers, initializer=_init_worker, initargs=(asdict(cfg),)) if workers > 1 else None
+    if pool is None:
+        _init_worker(asdict(cfg))
+    try:
+        it = pool.imap_unordered(_render_batch, tasks) if pool else map(_render_batch, tasks)
+        last_flush = time.perf_counter()
+        for recs in it:
+            for rec in recs:
+                writer.add(rec)
+                n_inst += len(rec["info"])
+                n_crops += sum(i["visib_fract"] >= 0.1 for i in rec["info"])
+            done += len(recs)
+            bar.update(len(recs))
+            if time.perf_counter() - last_flush > 10:
+                writer.flush()
+                last_flush = time.perf_counter()
+    except KeyboardInterrupt:
+        interrupted = True
+        if pool:
+            pool.terminate()
+    finally:
+        bar.close()
+        writer.flush()
+        if pool:
+            pool.close() if not interrupted else None
+            pool.join()
+        else:
+            for k in ("scene", "crop"):
+                if k in _W:
+                    _W.pop(k).close()
+    dt = time.perf_counter() - t0
+    meta.update(images_written=done, seconds=round(dt, 1), interrupted=interrupted)
+    _dump_json(out / "synth_config.json", meta)
+    return SynthReport(done, n_inst, n_crops, dt, done / dt, n_crops / dt, _peak_rss_mb(resource.RUSAGE_SELF),
+                       _peak_rss_mb(resource.RUSAGE_CHILDREN), workers, interrupted)

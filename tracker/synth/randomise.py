@@ -1,0 +1,179 @@
+"""Domain randomisation: backgrounds, distractor meshes, lights and camera effects.
+
+Every function takes the generator it draws from, so a scene is a pure function of its seed.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import trimesh
+
+from ..errors import UserError
+
+BG_EXTS = (".jpg", ".jpeg", ".png")
+
+
+# --------------------------------------------------------------------------- backgrounds
+
+
+def list_backgrounds(folder) -> list[Path]:
+    d = Path(folder)
+    if not d.is_dir():
+        raise UserError(f"backgrounds folder not found: {d}")
+    files = sorted(p for p in d.iterdir() if p.suffix.lower() in BG_EXTS)
+    if not files:
+        raise UserError(f"{d}: no .jpg/.png background images")
+    return files
+
+
+class Backgrounds:
+    """Photos (decoded once, kept small) and procedural textures, as RGB uint8 frames."""
+
+    def __init__(self, files: list[Path], p_procedural: float = 0.25):
+        self.images = []
+        for f in files:
+            bgr = cv2.imread(str(f), cv2.IMREAD_COLOR)
+            if bgr is None:
+                continue  # an unreadable photo is skipped; an empty set is an error below
+            s = 800.0 / max(bgr.shape[:2])
+            if s < 1:
+                bgr = cv2.resize(bgr, None, fx=s, fy=s, interpolation=cv2.INTER_AREA)
+            self.images.append(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB))
+        if not self.images:
+            raise UserError("no readable background image")
+        self.p_procedural = p_procedural
+
+    def sample(self, rng: np.random.Generator, width: int, height: int) -> np.ndarray:
+        if rng.random() < self.p_procedural:
+            return procedural_texture(rng, width, height)
+        img = self.images[rng.integers(len(self.images))]
+        h, w = img.shape[:2]
+        # random scale, crop, flip
+        s = max(width / w, height / h) * rng.uniform(1.0, 1.8)
+        big = cv2.resize(img, (max(width, int(w * s + 1)), max(height, int(h * s + 1))), interpolation=cv2.INTER_LINEAR)
+        y0 = rng.integers(0, big.shape[0] - height + 1)
+        x0 = rng.integers(0, big.shape[1] - width + 1)
+        out = big[y0:y0 + height, x0:x0 + width]
+        if rng.random() < 0.5:
+            out = out[:, ::-1]
+        return np.ascontiguousarray(out)
+
+
+def procedural_texture(rng: np.random.Generator, width: int, height: int) -> np.ndarray:
+    """Smooth colour noise, stripes, checkers or a gradient."""
+    kind = rng.integers(4)
+    if kind == 0:  # multi-scale colour noise
+        out = np.zeros((height, width, 3), np.float32)
+        for cells in (4, 16, 64):
+            n = rng.uniform(0, 1, (max(2, height * cells // width), cells, 3)).astype(np.float32)
+            out += cv2.resize(n, (width, height), interpolation=cv2.INTER_CUBIC) / 3
+        img = out
+    elif kind == 1:  # stripes
+        period = rng.uniform(8, 80)
+        ang = rng.uniform(0, np.pi)
+        yy, xx = np.mgrid[0:height, 0:width].astype(np.float32)
+        s = (np.sin((xx * np.cos(ang) + yy * np.sin(ang)) * 2 * np.pi / period) > 0)[..., None]
+        img = np.where(s, rng.uniform(0, 1, 3), rng.uniform(0, 1, 3)).astype(np.float32)
+    elif kind == 2:  # checkers
+        c = int(rng.integers(10, 80))
+        yy, xx = np.mgrid[0:height, 0:width]
+        s = (((xx // c) + (yy // c)) % 2 == 0)[..., None]
+        img = np.where(s, rng.uniform(0, 1, 3), rng.uniform(0, 1, 3)).astype(np.float32)
+    else:  # gradient
+        a, b = rng.uniform(0, 1, 3), rng.uniform(0, 1, 3)
+        g = np.linspace(0, 1, width, dtype=np.float32)[None, :, None]
+        img = np.broadcast_to(a + (b - a) * g, (height, width, 3)).astype(np.float32)
+    return np.clip(img * 255, 0, 255).astype(np.uint8)
+
+
+# --------------------------------------------------------------------------- distractors
+
+
+def distractor_meshes(rng: np.random.Generator, n: int = 12) -> list[trimesh.Trimesh]:
+    """Primitives 30-200 mm with noisy vertex colours (a cheap random texture)."""
+    makers = [
+        lambda s: trimesh.creation.box(extents=s * rng.uniform(0.3, 1.0, 3)),
+        lambda s: trimesh.creation.cylinder(radius=s * rng.uniform(0.15, 0.5), height=s, sections=24),
+        lambda s: trimesh.creation.icosphere(subdivisions=2, radius=s / 2),
+        lambda s: trimesh.creation.capsule(height=s, radius=s * rng.uniform(0.1, 0.3)),
+        lambda s: trimesh.creation.cone(radius=s * rng.uniform(0.2, 0.5), height=s, sections=24),
+        lambda s: trimesh.creation.torus(major_radius=s * 0.35, minor_radius=s * rng.uniform(0.05, 0.15)),
+    ]
+    out = []
+    for i in range(n):
+        m = makers[i % len(makers)](rng.uniform(30, 200))
+        m = m.subdivide() if len(m.vertices) < 200 else m
+        base = rng.uniform(0, 255, 3)
+        noise = rng.normal(0, rng.uniform(5, 60), (len(m.vertices), 3))
+        cols = np.clip(base + noise, 0, 255).astype(np.uint8)
+        m.visual = trimesh.visual.ColorVisuals(m, vertex_colors=np.concatenate([cols, np.full((len(cols), 1), 255, np.uint8)], 1))
+        out.append(m)
+    return out
+
+
+# --------------------------------------------------------------------------- lights
+
+
+def sample_lights(rng: np.random.Generator):
+    """1-3 directional lights from the camera's side of the scene, random colour and
+    intensity, plus an ambient level. Returns (lights, ambient RGB).
+
+    Levels were set against the LM-O dev frames (crop colour statistics): with ambient
+    0.15-0.6 and lights 1-4.5 the objects came out 1.7x brighter than the camera shows them
+    (most of it was pyrender's gamma on vertex colours, fixed in render.py)."""
+    lights = []
+    for i in range(int(rng.integers(1, 4))):
+        d = rng.normal(size=3)
+        d[2] = abs(d[2]) + 0.3  # mostly shining away from the camera, onto the scene
+        colour = 1.0 - rng.uniform(0, 0.25, 3)
+        lights.append((d, colour, rng.uniform(0.5, 2.0) / (1 + 0.5 * i)))
+    ambient = rng.uniform(0.15, 0.5) * (1.0 - rng.uniform(0, 0.15, 3))
+    return lights, ambient
+
+
+# --------------------------------------------------------------------------- camera effects
+
+
+def jitter_colours(rgb: np.ndarray, mask: np.ndarray, rng: np.random.Generator, strength: float = 0.15) -> None:
+    """Material / vertex-colour jitter of one object in image space: per-channel gain and
+    a saturation change inside ``mask`` (in place)."""
+    if not mask.any():
+        return
+    px = rgb[mask].astype(np.float32)
+    px *= rng.uniform(1 - strength, 1 + strength, 3)
+    grey = px.mean(axis=1, keepdims=True)
+    px = grey + (px - grey) * rng.uniform(0.8, 1.5)
+    rgb[mask] = np.clip(px, 0, 255).astype(np.uint8)
+
+
+def composite(background: np.ndarray, render: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Render over background with a one-pixel feathered edge (stands in for anti-aliasing)."""
+    a = cv2.GaussianBlur(mask.astype(np.float32), (3, 3), 0.6)[..., None]
+    a = np.maximum(a, mask[..., None])  # keep the object's own pixels opaque
+    return (render * a + background * (1 - a)).astype(np.uint8)
+
+
+def camera_effects(img: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Exposure, contrast, saturation and white balance, blur (defocus or motion), sensor noise."""
+    f = img.astype(np.float32)
+    f = (f - 128) * rng.uniform(0.7, 1.2) + 128 + rng.uniform(-30, 30)  # contrast, brightness
+    grey = f.mean(axis=2, keepdims=True)
+    f = grey + (f - grey) * rng.uniform(0.8, 1.4)                          # saturation
+    f *= rng.uniform(0.88, 1.12, 3)                                         # white balance
+    r = rng.random()
+    if r < 0.3:
+        s = rng.uniform(0.3, 1.2)
+        f = cv2.GaussianBlur(f, (0, 0), s)
+    elif r < 0.6:  # the camera's own sharpening (real LM-O crops have 2-8x the Laplacian energy)
+        f = cv2.addWeighted(f, 1.8, cv2.GaussianBlur(f, (0, 0), 1.0), -0.8, 0)
+    elif r < 0.7:
+        k = int(rng.integers(3, 8))
+        kernel = np.zeros((k, k), np.float32)
+        kernel[k // 2] = 1.0 / k
+        M = cv2.getRotationMatrix2D(((k - 1) / 2, (k - 1) / 2), rng.uniform(0, 180), 1.0)
+        kernel = cv2.warpAffine(kernel, M, (k, k))
+        f = cv2.filter2D(f, -1, kernel / max(kernel.sum(), 1e-6))
+    f += rng.standard_normal(f.shape, dtype=np.float32) * np.float32(rng.uniform(2, 9))  # sensor noise
+    return np.clip(f, 0, 255).astype(np.uint8)
