@@ -1,0 +1,128 @@
+import filecmp
+import json
+import shutil
+
+import cv2
+import numpy as np
+import pytest
+
+from tracker.bop import load_scene
+from tracker.errors import UserError
+from tracker.geometry import project
+from tracker.synth.engine import SynthConfig, generate
+
+OBJS = [1, 5, 9]  # small models keep the test quick
+
+
+def _cfg(data_dir, **kw):
+    return SynthConfig(models_dir=str(data_dir / "lmo" / "models"), backgrounds_dir=str(data_dir / "backgrounds"),
+                       obj_ids=list(OBJS), **kw)
+
+
+@pytest.fixture(scope="module")
+def small_split(tmp_path_factory, data_dir):
+    out = tmp_path_factory.mktemp("synth")
+    rep = generate(_cfg(data_dir, seed=5), out, 8, workers=1, progress=False)
+    assert rep.images == 8 and not rep.interrupted
+    return out
+
+
+def raster_silhouette(vertices, faces, K, R, t, size=(640, 480), margin=320, ss=4):
+    """Independent of OpenGL: fill every projected triangle at ``ss`` x supersampling (on a
+    canvas with a margin, so the part outside the image counts too). Returns the pixel
+    coverage (0..1) at image resolution and the margin."""
+    uv = (project(vertices, K, R, t) + margin + 0.5) * ss - 0.5
+    canvas = np.zeros(((size[1] + 2 * margin) * ss, (size[0] + 2 * margin) * ss), np.uint8)
+    tri = np.round(uv[faces] * 4).astype(np.int32)  # 2 bits of sub-pixel precision
+    for tr in tri:  # one at a time: fillPoly of many polygons cancels where they overlap
+        cv2.fillConvexPoly(canvas, tr, 1, lineType=cv2.LINE_8, shift=2)
+    cov = canvas.reshape(size[1] + 2 * margin, ss, size[0] + 2 * margin, ss).mean(axis=(1, 3))
+    return cov, margin
+
+
+def test_annotations_agree_with_an_independent_projection(small_split, lmo_models):
+    scene = load_scene(small_split / "000000", require_gt=True)
+    assert len(scene.im_ids) == 8
+    checked = 0
+    for im_id in scene.im_ids:
+        K = scene.K(im_id)
+        img = scene.read_rgb(im_id)
+        assert img.shape == (480, 640, 3)
+        for k, g in enumerate(scene.gt[im_id]):
+            info = g.info
+            m = lmo_models[g.obj_id]
+            sil, mg = raster_silhouette(m.vertices, np.asarray(m.mesh.faces), K, g.R, g.t)
+            n_all = float(sil.sum())
+            inside = sil[mg:mg + 480, mg:mg + 640] > 0
+            mask = cv2.imread(str(small_split / "000000" / "mask_visib" / f"{im_id:06d}_{k:06d}.png"), 0) > 0
+            assert int(mask.sum()) == info["px_count_visib"]
+            assert info["px_count_all"] == pytest.approx(n_all, rel=0.03, abs=30)
+            assert 0.0 <= info["visib_fract"] <= 1.0
+            if info["px_count_visib"] > 50:
+                # visible pixels lie on the object's own silhouette
+                assert (mask & inside).sum() >= 0.95 * mask.sum()
+                ys, xs = np.nonzero(sil >= 0.5)
+                box = [xs.min() - mg, ys.min() - mg, xs.max() - xs.min() + 1, ys.max() - ys.min() + 1]
+                assert np.allclose(info["bbox_obj"], box, atol=3)
+                checked += 1
+    assert checked >= 10
+
+
+def test_clean_targets_show_the_whole_object_on_black(small_split):
+    root = small_split / "000000"
+    windows = json.loads((root / "clean_crops.json").read_text())
+    scene = load_scene(root, require_gt=True)
+    for im_id in scene.im_ids[:3]:
+        assert len(windows[str(im_id)]) == len(scene.gt[im_id])
+        for k in range(len(scene.gt[im_id])):
+            clean = cv2.imread(str(root / "clean" / f"{im_id:06d}_{k:06d}.png"))
+            assert clean.shape == (128, 128, 3)
+            fg = clean.max(axis=2) > 0
+            assert fg.sum() > 500
+            # the whole object: nothing touches the border of the window
+            assert not (fg[0].any() or fg[-1].any() or fg[:, 0].any() or fg[:, -1].any())
+
+
+def test_same_seed_same_output(small_split, tmp_path, data_dir):
+    again = tmp_path / "again"
+    generate(_cfg(data_dir, seed=5), again, 8, workers=2, progress=False)
+    a, b = small_split / "000000", again / "000000"
+    for name in ("scene_gt.json", "scene_gt_info.json", "scene_camera.json", "clean_crops.json"):
+        assert (a / name).read_text() == (b / name).read_text(), name
+    for sub in ("rgb", "mask_visib", "clean"):
+        files = sorted(p.name for p in (a / sub).iterdir())
+        match, mismatch, errors = filecmp.cmpfiles(a / sub, b / sub, files, shallow=False)
+        assert not mismatch and not errors, (sub, mismatch[:3])
+
+
+def test_preview_montage(small_split, tmp_path):
+    from tracker.synth.preview import preview
+    p = preview(small_split, tmp_path / "preview.png", n_scenes=4, n_crops=8)
+    img = cv2.imread(str(p))
+    assert img is not None and img.shape[1] == 1280
+
+
+def test_bad_input(data_dir, tmp_path):
+    with pytest.raises(UserError, match="positive"):
+        generate(_cfg(data_dir), tmp_path / "a", 0, workers=1, progress=False)
+    cfg = _cfg(data_dir)
+    cfg.backgrounds_dir = str(tmp_path / "missing")
+    with pytest.raises(UserError, match="backgrounds folder not found"):
+        generate(cfg, tmp_path / "b", 2, workers=1, progress=False)
+    (tmp_path / "empty").mkdir()
+    cfg.backgrounds_dir = str(tmp_path / "empty")
+    with pytest.raises(UserError, match="no .jpg/.png"):
+        generate(cfg, tmp_path / "c", 2, workers=1, progress=False)
+    models = tmp_path / "models"
+    models.mkdir()
+    (models / "obj_000001.ply").write_text("ply\nformat ascii 1.0\nelement vertex 3\ngarbage")
+    bad = SynthConfig(models_dir=str(models), backgrounds_dir=str(data_dir / "backgrounds"))
+    with pytest.raises(UserError, match="unreadable mesh"):
+        generate(bad, tmp_path / "d", 2, workers=1, progress=False)
+
+
+def test_sphere_prior_runs(data_dir, tmp_path):
+    rep = generate(_cfg(data_dir, seed=1, prior="sphere"), tmp_path, 2, workers=1, progress=False)
+    assert rep.images == 2
+    scene = load_scene(tmp_path / "000000", require_gt=True)
+    assert all(len(v) >= 1 for v in scene.gt.values())
