@@ -13,8 +13,6 @@ from .errors import NotLanded, UserError
 # Commands of CONVENTIONS.md whose implementation has not landed yet, with their issue.
 PENDING = {
     "track": (7, "the frame loop"),
-    "train": (5, "autoencoder + regressor training"),
-    "eval": (4, "pose evaluation with the BOP metrics"),
     "bench": (7, "per-stage latency benchmark"),
     "imu": (8, "IMU comparison"),
 }
@@ -112,6 +110,37 @@ def cmd_score(args) -> int:
     return 0
 
 
+def cmd_train(args) -> int:
+    from .train import train_bundle
+    m = train_bundle(args.data, args.out, method=args.method, size=args.size, latent=args.latent,
+                     minutes=args.minutes, seed=args.seed, max_images=args.max_images,
+                     models_info_path=args.models_info, reg_minutes=args.reg_minutes,
+                     command="app.py " + " ".join(sys.argv[1:]))
+    v = m["validation_synthetic"]
+    print(f"wrote {args.out}: synthetic validation median RE {v['regression']['re_median_deg']:.1f} deg "
+          f"(AAE {v['aae']['re_median_deg']:.1f}), median TE {v['regression']['te_median_mm']:.1f} mm "
+          f"(AAE {v['aae']['te_median_mm']:.1f})")
+    return 0
+
+
+def cmd_eval(args) -> int:
+    from .evaluate import evaluate
+    m = evaluate(args.model, args.data, args.json, boxes=args.boxes, mode=args.mode, bop_csv=args.bop_csv,
+                 max_frames=args.max_frames)
+    print(f"{m['method']} on {m['n_gt']} instances ({m['boxes']} boxes): ADD(I) {m['add_recall']:.3f}, "
+          f"AR_MSSD {m['ar_mssd']:.3f}, AR_MSPD {m['ar_mspd']:.3f}, RE median {m['re_median_deg']:.1f} deg, "
+          f"TE median {m['te_median_mm']:.1f} mm, {m['ms_per_image']:.1f} ms/image")
+    print(f"{'obj':>5} {'ADD(I)':>7} {'MSSD':>6} {'MSPD':>6} {'RE':>6} {'TE':>7}")
+    for k, v in sorted(m["per_object"].items(), key=lambda kv: int(kv[0])):
+        if v.get("add_recall") is None:
+            continue
+        print(f"{k:>5} {v['add_recall']:7.3f} {v['ar_mssd']:6.3f} {v['ar_mspd']:6.3f} "
+              f"{v['re_median_deg'] if v['re_median_deg'] is not None else float('nan'):6.1f} "
+              f"{v['te_median_mm'] if v['te_median_mm'] is not None else float('nan'):7.1f}")
+    print(f"visibility: {m['visibility_source']}\nwrote {args.json} and {m['bop_csv']}")
+    return 0
+
+
 def cmd_pending(args) -> int:
     issue, what = PENDING[args.command]
     raise NotLanded(f"'{args.command}' ({what}) has not landed yet: see issue {issue}")
@@ -164,7 +193,31 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--json", required=True, help="metrics JSON to write")
     s.set_defaults(func=cmd_score)
 
-    for name in ("train", "eval", "bench", "imu"):
+    s = sub.add_parser("train", help="autoencoder + latent regressors (+ AAE codebook) -> model bundle")
+    s.add_argument("--data", required=True, help="a 'synth' split")
+    s.add_argument("--out", required=True, help="bundle folder, e.g. models/lmo")
+    s.add_argument("--method", choices=["dalsr", "cvml", "cvam"], default="cvam")
+    s.add_argument("--size", type=int, default=64, help="crop side in pixels (thesis: 128)")
+    s.add_argument("--latent", type=int, default=128)
+    s.add_argument("--minutes", type=float, default=45.0, help="autoencoder time budget")
+    s.add_argument("--reg-minutes", type=float, default=4.0, help="time budget per MLP regressor")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--max-images", type=int, help="use only the first N scene images")
+    s.add_argument("--models-info", help="models_info.json (default: computed from the meshes)")
+    s.set_defaults(func=cmd_train)
+
+    s = sub.add_parser("eval", help="run a bundle on a BOP scene and score it")
+    s.add_argument("--model", required=True, help="model bundle folder")
+    s.add_argument("--data", required=True, help="BOP scene folder with ground truth")
+    s.add_argument("--boxes", choices=["gt", "detector"], default="gt")
+    s.add_argument("--mode", choices=["regression", "aae"], default="regression",
+                   help="latent regression (the thesis) or the AAE codebook baseline")
+    s.add_argument("--json", required=True, help="metrics JSON to write")
+    s.add_argument("--bop-csv", help="BOP results CSV (default: METHOD_lmo-test.csv beside the JSON)")
+    s.add_argument("--max-frames", type=int)
+    s.set_defaults(func=cmd_eval)
+
+    for name in ("bench", "imu"):
         s = sub.add_parser(name, help=PENDING[name][1])
         s.set_defaults(func=cmd_pending)
 

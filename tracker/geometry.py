@@ -226,14 +226,16 @@ def box_features(box_xywh: np.ndarray, K: np.ndarray) -> np.ndarray:
 
     ``u, v``: the box centre as a viewing-ray direction ((x - c_x) / f_x, (y - c_y) / f_y);
     ``w', h'``: the box size over the focal length. The same object at the same pose gives
-    the same features on any pinhole camera, at any resolution. (N, 4) -> (N, 4).
+    the same features on any pinhole camera, at any resolution. Boxes (N, 4); K (3, 3) or
+    one per box (N, 3, 3). Returns (N, 4).
     """
     b = np.asarray(box_xywh, dtype=np.float64).reshape(-1, 4)
     K = np.asarray(K, dtype=np.float64)
+    K = np.broadcast_to(K, (len(b), 3, 3)) if K.ndim == 2 else K.reshape(-1, 3, 3)
     cx = b[:, 0] + b[:, 2] / 2.0 - 0.5  # box centre in pixel-centre coordinates
     cy = b[:, 1] + b[:, 3] / 2.0 - 0.5
-    return np.stack([(cx - K[0, 2]) / K[0, 0], (cy - K[1, 2]) / K[1, 1],
-                     b[:, 2] / K[0, 0], b[:, 3] / K[1, 1]], axis=1)
+    return np.stack([(cx - K[:, 0, 2]) / K[:, 0, 0], (cy - K[:, 1, 2]) / K[:, 1, 1],
+                     b[:, 2] / K[:, 0, 0], b[:, 3] / K[:, 1, 1]], axis=1)
 
 
 def centre_from_box_offset(box_xywh: np.ndarray, offset: np.ndarray) -> np.ndarray:

@@ -160,6 +160,12 @@ def gt_visibility(scene: Scene, models: dict, im_ids, width: int, height: int
     """
     if all("visib_fract" in g.info for i in im_ids for g in scene.gt[i]):
         return {i: [float(g.info["visib_fract"]) for g in scene.gt[i]] for i in im_ids}, VISIB_FROM_GT_INFO
+    recs = rendered_gt_visibility(scene, models, im_ids, width, height)
+    return {i: [v.visib_fract for v in recs[i]] for i in im_ids}, VISIB_RENDERED
+
+
+def rendered_gt_visibility(scene: Scene, models: dict, im_ids, width: int, height: int) -> dict[int, list]:
+    """{im_id: [InstanceVisibility, ...]} of the GT instances, rendered from the known objects."""
     from .render import Renderer
     from .visibility import scene_visibility
     used = sorted({g.obj_id for i in im_ids for g in scene.gt[i]})
@@ -169,8 +175,8 @@ def gt_visibility(scene: Scene, models: dict, im_ids, width: int, height: int
     with Renderer(width, height, meshes) as full, Renderer(VISIB_WINDOW, VISIB_WINDOW, meshes) as crop:
         for i in im_ids:
             insts = [(g.obj_id, g.R, g.t) for g in scene.gt[i]]
-            out[i] = [v.visib_fract for v in scene_visibility(full, crop, scene.K(i), insts, verts)] if insts else []
-    return out, VISIB_RENDERED
+            out[i] = scene_visibility(full, crop, scene.K(i), insts, verts) if insts else []
+    return out
 
 
 # --------------------------------------------------------------------------- matching

@@ -1,0 +1,98 @@
+"""Pose estimation from boxes: crop -> batched ONNX encoder -> regressors -> poses.
+
+The one code path of evaluation and the live loop. Needs onnxruntime, numpy and
+scikit-learn; never torch.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+from .bundle import Bundle, open_bundle
+from .errors import UserError
+from .geometry import crop_and_resize, square_crop
+
+
+@dataclass
+class Detection:
+    obj_id: int
+    box: np.ndarray  # (x, y, w, h) in the frame's pixels
+    score: float = 1.0
+
+
+@dataclass
+class PoseEstimate:
+    obj_id: int
+    R: np.ndarray
+    t: np.ndarray
+    score: float
+    box: np.ndarray
+
+
+def make_session(path, threads: int = 1):
+    """onnxruntime session tuned for a small CPU: fixed threads, no spinning (spinning
+    threads starve scikit-learn and the renderer on 2 cores)."""
+    import onnxruntime as ort
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = threads
+    so.inter_op_num_threads = 1
+    so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    so.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    so.add_session_config_entry("session.inter_op.allow_spinning", "0")
+    so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    try:
+        return ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+    except Exception as e:
+        raise UserError(f"{path}: cannot load the ONNX model ({str(e).splitlines()[0][:120]})") from None
+
+
+class PoseEstimator:
+    def __init__(self, bundle: Bundle | str | os.PathLike, threads: int = 1):
+        self.bundle = bundle if isinstance(bundle, Bundle) else open_bundle(bundle)
+        m = self.bundle.manifest
+        self.size = int(m["input_size"])
+        self.method = m["method"]
+        self.obj_ids = [int(o["id"]) for o in m["objects"]]
+        self.session = make_session(self.bundle.path("encoder"), threads)
+        self.head = self.bundle.load_joblib("pose_head")
+        self.conditional = len(self.session.get_inputs()) > 1
+        shape = self.session.get_inputs()[0].shape
+        if shape[1:] != [3, self.size, self.size]:
+            raise UserError(f"encoder input is {shape[1:]}, the manifest says 3x{self.size}x{self.size}")
+
+    def crops(self, image_rgb: np.ndarray, boxes) -> np.ndarray:
+        """(N, 3, S, S) float32 in [0, 1], RGB, as the encoder takes them."""
+        out = np.empty((len(boxes), self.size, self.size, 3), np.uint8)
+        for i, b in enumerate(boxes):
+            out[i] = crop_and_resize(image_rgb, square_crop(b, self.size))
+        return out.transpose(0, 3, 1, 2).astype(np.float32) / 255.0
+
+    def encode(self, x: np.ndarray, obj_ids) -> np.ndarray:
+        feeds = {self.session.get_inputs()[0].name: x}
+        if self.conditional:
+            oh = np.eye(len(self.obj_ids), dtype=np.float32)[self.head.index(obj_ids)]
+            feeds[self.session.get_inputs()[1].name] = oh
+        return self.session.run(None, feeds)[0]
+
+    def estimate(self, image_rgb: np.ndarray, K: np.ndarray, detections: list[Detection],
+                 mode: str = "regression") -> list[PoseEstimate]:
+        dets = [d for d in detections if d.box[2] > 1 and d.box[3] > 1]
+        if not dets:
+            return []
+        if image_rgb.ndim != 3 or image_rgb.shape[2] != 3:
+            raise UserError(f"expected an RGB image (H, W, 3), got shape {image_rgb.shape}")
+        boxes = np.array([d.box for d in dets], dtype=np.float64)
+        ids = [d.obj_id for d in dets]
+        self.head.index(ids)  # unknown objects fail here, before any work
+        mu = self.encode(self.crops(image_rgb, boxes), ids)
+        if mode == "aae" and self.head.codebook is None:
+            self.head.codebook = self.bundle.load_joblib("codebook")
+        R, t = self.head.predict(mu, ids, boxes, K, mode=mode)
+        out = []
+        for d, r, tt in zip(dets, R, t):
+            if not (np.all(np.isfinite(r)) and np.all(np.isfinite(tt))):
+                continue  # NaN from a degenerate crop: no estimate rather than garbage
+            out.append(PoseEstimate(d.obj_id, r, tt, d.score, d.box))
+        return out

@@ -1,0 +1,68 @@
+"""``app.py eval``: run a bundle on a BOP scene and score it with the BOP metrics."""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from .bop import Estimate, load_scene, write_results
+from .errors import UserError
+from .estimator import Detection, PoseEstimator
+
+
+def bop_csv_name(method: str, dataset: str = "lmo", split: str = "test") -> str:
+    """BOP's rule for result files: METHOD_DATASET-SPLIT.csv (no '_' inside METHOD)."""
+    return f"{method.replace('_', '-')}_{dataset}-{split}.csv"
+
+
+def gt_boxes(scene, models, im_ids) -> tuple[dict[int, list], str]:
+    """Visible GT boxes per image: scene_gt_info's bbox_visib, else rendered from the known objects."""
+    from .scoring import VISIB_FROM_GT_INFO, VISIB_RENDERED, rendered_gt_visibility
+    if all("bbox_visib" in g.info for i in im_ids for g in scene.gt[i]):
+        return ({i: [(np.asarray(g.info["bbox_visib"], float), float(g.info.get("visib_fract", 1.0)))
+                     for g in scene.gt[i]] for i in im_ids}, VISIB_FROM_GT_INFO)
+    h, w = scene.read_rgb(im_ids[0]).shape[:2]
+    recs = rendered_gt_visibility(scene, models, im_ids, w, h)
+    return {i: [(np.asarray(v.bbox_visib, float), v.visib_fract) for v in recs[i]] for i in im_ids}, VISIB_RENDERED
+
+
+def evaluate(model_dir, scene_dir, json_path=None, boxes: str = "gt", mode: str = "regression",
+             bop_csv=None, max_frames: int | None = None, progress: bool = True) -> dict:
+    from .meshes import load_models
+    from .scoring import score_results, write_metrics_json
+    if boxes != "gt":
+        raise UserError("--boxes detector needs a bundle with a detector (issue 6 has not landed); use --boxes gt")
+    est = PoseEstimator(model_dir)
+    scene = load_scene(scene_dir, require_gt=True)
+    im_ids = sorted(scene.gt)[:max_frames] if max_frames else sorted(scene.gt)
+    mesh_dir = Path(model_dir) / "meshes"
+    gt_ids = sorted({g.obj_id for i in im_ids for g in scene.gt[i]})
+    outside = [o for o in gt_ids if o not in est.obj_ids]
+    if outside:
+        raise UserError(f"the scene has object(s) {outside} that the bundle does not know ({est.obj_ids})")
+    models = load_models(mesh_dir, gt_ids)
+    box_of, _ = gt_boxes(scene, models, im_ids)
+    results = []
+    t_all = 0.0
+    for im_id in tqdm(im_ids, desc=f"eval ({mode})", unit="img", disable=not progress):
+        img = scene.read_rgb(im_id)
+        dets = [Detection(g.obj_id, b) for g, (b, v) in zip(scene.gt[im_id], box_of[im_id]) if b[2] > 1 and b[3] > 1]
+        t0 = time.perf_counter()
+        poses = est.estimate(img, scene.K(im_id), dets, mode=mode)
+        dt = time.perf_counter() - t0
+        t_all += dt
+        results += [Estimate(0, im_id, p.obj_id, p.score, p.R, p.t, dt) for p in poses]
+    name = f"autopose-{est.method}" + ("" if mode == "regression" else f"-{mode}")
+    if bop_csv is None:
+        base = Path(json_path).parent if json_path else Path(".")
+        bop_csv = base / bop_csv_name(name)
+    write_results(bop_csv, results)
+    m = score_results(bop_csv, scene_dir, mesh_dir, models_info=mesh_dir / "models_info.json", im_ids=im_ids,
+                      scene_id=0, ms_per_image=1000 * t_all / len(im_ids))
+    m.update({"boxes": boxes, "mode": mode, "model": str(model_dir), "data": str(scene_dir),
+              "bop_csv": str(bop_csv), "method": name})
+    if json_path:
+        write_metrics_json(json_path, m)
+    return m

@@ -1,0 +1,116 @@
+"""Autoencoders of the thesis, sized for a CPU (training only: imports torch).
+
+- ``dalsr``: denoising autoencoder, pixel L2 (DALSR-Pose).
+- ``cvml``: variational autoencoder, loss = sum ||x_hat - x'||^2 + alpha * KL, alpha = 0.1
+  (CVML-Pose); inference uses mu.
+- ``cvam``: conditional VAE: the one-hot object label is tiled and concatenated to the
+  input of every conv layer of encoder and decoder (CVAM-Pose, Table 4.12).
+
+Plain conv encoder (CVML-base), SiLU, nearest-neighbour upsampling + conv decoder (no
+transposed convolutions). The encoder's ``forward`` returns ``mu`` only: that is what is
+exported to ONNX.
+"""
+from __future__ import annotations
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+METHODS = ("dalsr", "cvml", "cvam")
+
+
+class CondConv(nn.Module):
+    """Conv (+ SiLU) whose input gets the tiled one-hot label when ``n_cond`` > 0."""
+
+    def __init__(self, cin, cout, n_cond, stride=1, act=True):
+        super().__init__()
+        self.n_cond = n_cond
+        self.conv = nn.Conv2d(cin + n_cond, cout, 3 if stride == 1 else 4, stride, 1)
+        self.act = nn.SiLU() if act else nn.Identity()
+
+    def forward(self, x, c=None):
+        if self.n_cond:
+            x = torch.cat([x, c[:, :, None, None].expand(-1, -1, x.shape[2], x.shape[3])], 1)
+        return self.act(self.conv(x))
+
+
+class Encoder(nn.Module):
+    def __init__(self, size=64, latent=128, widths=(32, 64, 128, 256), n_cond=0, variational=True):
+        super().__init__()
+        self.size, self.latent, self.n_cond, self.variational = size, latent, n_cond, variational
+        layers, cin = [], 3
+        for w in widths:
+            layers.append(CondConv(cin, w, n_cond, stride=2))
+            cin = w
+        self.convs = nn.ModuleList(layers)
+        self.feat = size // 2 ** len(widths)
+        flat = cin * self.feat * self.feat
+        self.mu = nn.Linear(flat + n_cond, latent)
+        self.logvar = nn.Linear(flat + n_cond, latent) if variational else None
+
+    def features(self, x, c=None):
+        for layer in self.convs:
+            x = layer(x, c)
+        h = x.flatten(1)
+        return torch.cat([h, c], 1) if self.n_cond else h
+
+    def forward(self, x, c=None):
+        """mu only (the exported inference path). x: (B, 3, S, S) RGB in [0, 1]."""
+        return self.mu(self.features(x, c))
+
+    def encode(self, x, c=None):
+        h = self.features(x, c)
+        mu = self.mu(h)
+        return mu, (self.logvar(h) if self.variational else None)
+
+
+class Decoder(nn.Module):
+    def __init__(self, size=64, latent=128, widths=(256, 128, 64, 32), n_cond=0):
+        super().__init__()
+        self.n_cond = n_cond
+        self.feat = size // 2 ** len(widths)
+        self.w0 = widths[0]
+        self.fc = nn.Linear(latent + n_cond, widths[0] * self.feat * self.feat)
+        ups, cin = [], widths[0]
+        for w in widths[1:] + (widths[-1],):
+            ups.append(CondConv(cin, w, n_cond))
+            cin = w
+        self.ups = nn.ModuleList(ups)
+        self.out = nn.Conv2d(cin, 3, 3, 1, 1)
+
+    def forward(self, z, c=None):
+        if self.n_cond:
+            z = torch.cat([z, c], 1)
+        x = F.silu(self.fc(z)).view(-1, self.w0, self.feat, self.feat)
+        for layer in self.ups:
+            x = layer(F.interpolate(x, scale_factor=2, mode="nearest"), c)
+        return torch.sigmoid(self.out(x))
+
+
+class AutoEncoder(nn.Module):
+    def __init__(self, method="cvam", size=64, latent=128, n_objects=1, widths=(32, 64, 128, 256)):
+        super().__init__()
+        if method not in METHODS:
+            raise ValueError(f"unknown method {method}")
+        self.method = method
+        n_cond = n_objects if method == "cvam" else 0
+        variational = method in ("cvml", "cvam")
+        self.encoder = Encoder(size, latent, widths, n_cond, variational)
+        self.decoder = Decoder(size, latent, tuple(reversed(widths)), n_cond)
+        self.n_cond = n_cond
+
+    def forward(self, x, c=None):
+        mu, logvar = self.encoder.encode(x, c)
+        z = mu
+        if logvar is not None and self.training:
+            z = mu + torch.randn_like(mu) * torch.exp(0.5 * logvar)
+        return self.decoder(z, c), mu, logvar
+
+
+def loss_terms(recon, target, mu, logvar):
+    """Per-batch mean of: sum of squared pixel errors per image, and KL to N(0, I)."""
+    l2 = ((recon - target) ** 2).flatten(1).sum(1).mean()
+    if logvar is None:
+        return l2, torch.zeros((), device=recon.device)
+    kl = (-0.5 * (1 + logvar - mu ** 2 - logvar.exp()).sum(1)).mean()
+    return l2, kl

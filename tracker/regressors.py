@@ -1,0 +1,217 @@
+"""Pose regressors on the latent code, with the scikit-learn API and numpy-only ``predict``
+(so a bundle runs without torch). Training of :class:`Rot6DMLP` imports torch lazily.
+
+Features are camera-independent (see :func:`tracker.geometry.box_features`):
+- rotation: ``[mu, onehot]`` -> 6D (Zhou et al.) -> R;
+- centre: ``[mu, onehot, u, v, w', h']`` -> offset of the projected centre from the box
+  centre in units of the box's longer side;
+- distance: ``[mu, onehot, log w', log h']`` -> ``Tz * sqrt(w' h')`` (the object's apparent
+  size times its distance, about constant per view), k-nearest-neighbours, distance
+  weighted, k and the weight of the box features chosen on validation.
+"""
+from __future__ import annotations
+
+import numpy as np
+from sklearn.base import BaseEstimator, RegressorMixin
+from sklearn.neighbors import KNeighborsRegressor
+from sklearn.preprocessing import StandardScaler
+
+from .errors import UserError
+from .geometry import box_features, centre_from_box_offset, matrix_from_rot6d, translation_from_centre
+
+
+def _silu(x):
+    return x / (1.0 + np.exp(-x))
+
+
+class NumpyMLP(BaseEstimator, RegressorMixin):
+    """A SiLU MLP trained with torch, evaluated with numpy. ``loss``: 'l1_rotation' (input
+    -> 6D, L1 between rotation matrices, minimum over the object's symmetries) or 'l1'."""
+
+    def __init__(self, hidden=(256, 256), loss="l1", epochs=300, lr=3e-3, batch=1024, weight_decay=1e-4,
+                 seed=0, minutes=5.0):
+        self.hidden, self.loss, self.epochs, self.lr, self.batch = hidden, loss, epochs, lr, batch
+        self.weight_decay, self.seed, self.minutes = weight_decay, seed, minutes
+
+    # -- numpy inference
+    def _forward(self, X):
+        h = (np.asarray(X, dtype=np.float32) - self.mean_) / self.scale_
+        for i, (W, b) in enumerate(self.layers_):
+            h = h @ W + b
+            if i < len(self.layers_) - 1:
+                h = _silu(h)
+        return h
+
+    def predict(self, X):
+        out = self._forward(X)
+        return matrix_from_rot6d(out) if self.loss == "l1_rotation" else out
+
+    # -- training (torch)
+    def fit(self, X, Y, sym_R=None, X_val=None, Y_val=None, log=None):
+        """``Y``: (N, 3, 3) rotations for 'l1_rotation', else (N, D). ``sym_R``: (N, S, 3, 3)
+        symmetry rotations per sample (identity first) for the rotation loss."""
+        import time
+
+        import torch
+        torch.manual_seed(self.seed)
+        X = np.asarray(X, dtype=np.float32)
+        self.mean_ = X.mean(0)
+        self.scale_ = X.std(0) + 1e-6
+        Xt = torch.from_numpy((X - self.mean_) / self.scale_)
+        Yt = torch.from_numpy(np.asarray(Y, dtype=np.float32))
+        St = torch.from_numpy(np.asarray(sym_R, dtype=np.float32)) if sym_R is not None else None
+        dout = 6 if self.loss == "l1_rotation" else Yt.shape[1]
+        dims = [X.shape[1], *self.hidden, dout]
+        mods = []
+        for i in range(len(dims) - 1):
+            mods.append(torch.nn.Linear(dims[i], dims[i + 1]))
+            if i < len(dims) - 2:
+                mods.append(torch.nn.SiLU())
+        net = torch.nn.Sequential(*mods)
+        opt = torch.optim.AdamW(net.parameters(), lr=self.lr, weight_decay=self.weight_decay)
+        sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, self.epochs)
+        g = torch.Generator().manual_seed(self.seed)
+        t0 = time.perf_counter()
+        for ep in range(self.epochs):
+            perm = torch.randperm(len(Xt), generator=g)
+            for i in range(0, len(Xt), self.batch):
+                idx = perm[i:i + self.batch]
+                out = net(Xt[idx])
+                loss = self._loss(torch, out, Yt[idx], None if St is None else St[idx])
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                opt.step()
+            sched.step()
+            if log and ep % 50 == 0:
+                log(f"  {self.loss} epoch {ep}: {loss.item():.4f}")
+            if time.perf_counter() - t0 > self.minutes * 60:
+                break
+        lin = [m for m in net if isinstance(m, torch.nn.Linear)]
+        self.layers_ = [(m.weight.detach().numpy().T.copy(), m.bias.detach().numpy().copy()) for m in lin]
+        return self
+
+    @staticmethod
+    def _loss(torch, out, y, syms):
+        if y.ndim == 3:  # rotation: 6D -> Gram-Schmidt -> L1 on the matrix, min over symmetries
+            a1, a2 = out[:, :3], out[:, 3:]
+            b1 = torch.nn.functional.normalize(a1, dim=1)
+            b2 = torch.nn.functional.normalize(a2 - (b1 * a2).sum(1, keepdim=True) * b1, dim=1)
+            R = torch.stack([b1, b2, torch.cross(b1, b2, dim=1)], dim=2)
+            if syms is None:
+                return (R - y).abs().sum((1, 2)).mean()
+            targets = torch.einsum("nij,nsjk->nsik", y, syms)  # R_gt S
+            return (R[:, None] - targets).abs().sum((2, 3)).min(1).values.mean()
+        return (out - y).abs().sum(1).mean()
+
+
+class DistanceKNN(BaseEstimator, RegressorMixin):
+    """Distance-weighted KNN on ``[mu, onehot, box]`` with the box features weighted by
+    ``box_weight`` after standardisation; predicts the log of Tz * sqrt(w' h')."""
+
+    def __init__(self, k=5, box_weight=3.0, n_box=2):
+        self.k, self.box_weight, self.n_box = k, box_weight, n_box
+
+    def _prep(self, X):
+        Z = self.scaler_.transform(np.asarray(X, dtype=np.float64))
+        Z[:, -self.n_box:] *= self.box_weight
+        return Z
+
+    def fit(self, X, y):
+        self.scaler_ = StandardScaler().fit(np.asarray(X, dtype=np.float64))
+        self.knn_ = KNeighborsRegressor(n_neighbors=self.k, weights="distance").fit(self._prep(X), y)
+        return self
+
+    def predict(self, X):
+        return self.knn_.predict(self._prep(X))
+
+
+class Codebook(BaseEstimator):
+    """AAE's lookup table (Sundermeyer et al.): L2-normalised latent codes of training views
+    per object; cosine nearest neighbour gives the rotation, and the view's distance times
+    its box size over the query's box size gives Tz."""
+
+    def fit(self, mu, obj_id, R, tz_size):
+        self.codes_ = {}
+        for o in np.unique(obj_id):
+            m = obj_id == o
+            c = mu[m] / (np.linalg.norm(mu[m], axis=1, keepdims=True) + 1e-9)
+            self.codes_[int(o)] = (c.astype(np.float32), R[m].astype(np.float32), tz_size[m].astype(np.float32))
+        return self
+
+    def predict(self, mu, obj_id):
+        """(R (N, 3, 3), Tz * size of the nearest view (N,))."""
+        Rs = np.zeros((len(mu), 3, 3))
+        ts = np.zeros(len(mu))
+        q = mu / (np.linalg.norm(mu, axis=1, keepdims=True) + 1e-9)
+        for o in np.unique(obj_id):
+            m = obj_id == o
+            codes, R, tzs = self.codes_[int(o)]
+            j = np.argmax(q[m] @ codes.T, axis=1)
+            Rs[m], ts[m] = R[j], tzs[j]
+        return Rs, ts
+
+
+# --------------------------------------------------------------------------- features
+
+
+def onehot(obj_idx: np.ndarray, n: int) -> np.ndarray:
+    return np.eye(n, dtype=np.float32)[np.asarray(obj_idx, dtype=int)]
+
+
+def rotation_inputs(mu, obj_idx, n_obj) -> np.ndarray:
+    return np.hstack([mu, onehot(obj_idx, n_obj)]).astype(np.float32)
+
+
+def centre_inputs(mu, obj_idx, n_obj, boxes, K) -> np.ndarray:
+    return np.hstack([rotation_inputs(mu, obj_idx, n_obj), box_features(boxes, K)]).astype(np.float32)
+
+
+def distance_inputs(mu, obj_idx, n_obj, boxes, K) -> np.ndarray:
+    bf = box_features(boxes, K)
+    return np.hstack([rotation_inputs(mu, obj_idx, n_obj), np.log(bf[:, 2:4])]).astype(np.float32)
+
+
+def apparent_size(boxes, K) -> np.ndarray:
+    """sqrt(w' h'): the box's size over the focal length (camera-independent)."""
+    bf = box_features(boxes, K)
+    return np.sqrt(bf[:, 2] * bf[:, 3])
+
+
+# --------------------------------------------------------------------------- the pose head
+
+
+class PoseHead:
+    """Latent code + box -> pose, by regression (the thesis) or by the AAE codebook."""
+
+    def __init__(self, obj_ids, rotation, centre, distance, codebook=None):
+        self.obj_ids = [int(o) for o in obj_ids]
+        self.rotation, self.centre, self.distance, self.codebook = rotation, centre, distance, codebook
+
+    def index(self, obj_ids) -> np.ndarray:
+        lut = {o: i for i, o in enumerate(self.obj_ids)}
+        try:
+            return np.array([lut[int(o)] for o in obj_ids], dtype=int)
+        except KeyError as e:
+            raise UserError(f"object {e.args[0]} is not in this bundle (has {self.obj_ids})") from None
+
+    def predict(self, mu, obj_ids, boxes, K, mode: str = "regression"):
+        """Poses (R (N, 3, 3), t (N, 3) mm) for latent codes ``mu`` of crops cut from ``boxes``."""
+        idx = self.index(obj_ids)
+        n = len(self.obj_ids)
+        boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
+        size = apparent_size(boxes, K)
+        if mode == "aae":
+            R, tz_size = self.codebook.predict(mu, np.asarray(obj_ids))
+            tz = tz_size / size
+            offset = np.zeros((len(mu), 2))  # the box centre stands for the object's centre
+        else:
+            R = self.rotation.predict(rotation_inputs(mu, idx, n))
+            offset = self.centre.predict(centre_inputs(mu, idx, n, boxes, K))
+            tz = np.exp(self.distance.predict(distance_inputs(mu, idx, n, boxes, K))) / size
+        centre = centre_from_box_offset(boxes, offset)
+        K = np.asarray(K, dtype=np.float64)
+        if K.ndim == 2:
+            t = translation_from_centre(centre, tz, K)
+        else:
+            t = np.stack([translation_from_centre(c, z, k) for c, z, k in zip(centre, tz, K)])
+        return R, t

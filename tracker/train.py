@@ -1,0 +1,218 @@
+"""``app.py train``: crops -> autoencoder -> latent regressors (+ AAE codebook) -> bundle.
+
+Training needs the ``train`` extra (torch, onnx); the bundle it writes does not.
+"""
+from __future__ import annotations
+
+import json
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .bop import load_models_info, symmetry_transforms
+from .errors import UserError
+from .geometry import box_offset_of_centre, focal_mean, project, rotation_error_deg
+from .overlay import LMO_NAMES
+from .regressors import (Codebook, DistanceKNN, NumpyMLP, PoseHead, apparent_size, centre_inputs,
+                         distance_inputs, rotation_inputs)
+
+KNN_K = (1, 2, 3, 5, 8, 12, 20)
+KNN_BOX_WEIGHT = (1.0, 3.0, 10.0)
+
+
+def _torch():
+    try:
+        import torch
+    except ImportError:
+        raise UserError("training needs the 'train' extra: .venv/bin/pip install -e '.[train]'") from None
+    return torch
+
+
+def _sym_rotations(obj_idx, obj_ids, models_info) -> np.ndarray:
+    """(N, S, 3, 3): each sample's symmetry rotations, identity first, padded with identity."""
+    per = [symmetry_transforms(models_info[o], continuous_steps=36)[:, :3, :3] for o in obj_ids]
+    S = max(len(p) for p in per)
+    per = [np.concatenate([p, np.repeat(np.eye(3)[None], S - len(p), 0)]) for p in per]
+    return np.stack(per)[obj_idx].astype(np.float32)
+
+
+def choose_knn(Xtr, ytr, Xva, size_va, centre_va_t, t_va, K_va, log=print):
+    """k and box weight by the whole-translation error on validation (thesis 4.2.2)."""
+    from .geometry import translation_from_centre
+    best = None
+    for w in KNN_BOX_WEIGHT:
+        for k in KNN_K:
+            m = DistanceKNN(k=k, box_weight=w).fit(Xtr, ytr)
+            tz = np.exp(m.predict(Xva)) / size_va
+            t = np.stack([translation_from_centre(c, z, KK) for c, z, KK in zip(centre_va_t, tz, K_va)])
+            err = float(np.median(np.linalg.norm(t - t_va, axis=1)))
+            if best is None or err < best[0]:
+                best = (err, k, w)
+    log(f"distance KNN: k={best[1]}, box weight {best[2]}: median translation error {best[0]:.1f} mm (validation)")
+    return DistanceKNN(k=best[1], box_weight=best[2]).fit(Xtr, ytr), {"k": best[1], "box_weight": best[2],
+                                                                        "val_te_median_mm": best[0]}
+
+
+def export_encoder(model, size: int, n_cond: int, path: Path, x_check: np.ndarray, c_check=None) -> float:
+    """ONNX with a dynamic batch; returns the max |onnx - torch| on ``x_check``."""
+    torch = _torch()
+    enc = model.encoder.eval()
+    x = torch.from_numpy(x_check[:2])
+    args = (x,) if not n_cond else (x, torch.from_numpy(c_check[:2]))
+    names = ["image"] + (["object"] if n_cond else [])
+    dyn = {n: {0: "batch"} for n in names + ["mu"]}
+    torch.onnx.export(enc, args, str(path), input_names=names, output_names=["mu"], dynamic_axes=dyn,
+                      opset_version=17, dynamo=False)
+    from .estimator import make_session
+    sess = make_session(path)
+    feeds = {"image": x_check}
+    if n_cond:
+        feeds["object"] = c_check
+    got = sess.run(None, feeds)[0]
+    with torch.no_grad():
+        ref = enc(torch.from_numpy(x_check), None if not n_cond else torch.from_numpy(c_check)).numpy()
+    return float(np.abs(got - ref).max())
+
+
+def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent: int = 128,
+                 minutes: float = 45.0, seed: int = 0, max_images: int | None = None,
+                 models_info_path=None, codebook_per_object: int = 2500, reg_minutes: float = 4.0,
+                 log=print, command: str | None = None) -> dict:
+    torch = _torch()
+    from .crops import CropSet, build_training_crops
+    from .meshes import load_models
+    from .nets.autoencoder import METHODS, AutoEncoder
+    from .nets.fit import encode_all, onehot, to_tensor, train_autoencoder
+    if method not in METHODS:
+        raise UserError(f"unknown method '{method}' (choose from {', '.join(METHODS)})")
+    torch.set_num_threads(2)
+    data_dir, out = Path(data_dir), Path(out_dir)
+    cfg_path = data_dir / "synth_config.json"
+    if not cfg_path.is_file():
+        raise UserError(f"{data_dir}: no synth_config.json; make training data with 'app.py synth'")
+    synth = json.loads(cfg_path.read_text())
+    work = out.parent / (out.name + ".work")  # checkpoints and caches, outside the bundle
+    work.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+
+    cache = work / f"crops_{size}_seed{seed}_{max_images or 'all'}.npz"
+    if cache.is_file():
+        cs = CropSet.load(cache)
+        log(f"loaded {len(cs)} crops from {cache}")
+    else:
+        cs = build_training_crops(data_dir, size, seed=seed, max_images=max_images)
+        cs.save(cache)
+        log(f"cut {len(cs)} crops at {size}x{size} ({time.perf_counter() - t0:.0f} s)")
+    obj_ids = sorted(int(o) for o in np.unique(cs.obj_id))
+    lut = {o: i for i, o in enumerate(obj_ids)}
+    idx = np.array([lut[int(o)] for o in cs.obj_id])
+    n_obj = len(obj_ids)
+
+    rng = np.random.default_rng(seed)
+    perm = rng.permutation(len(cs))
+    n_va = max(1, len(cs) // 10)
+    va, tr = np.sort(perm[:n_va]), np.sort(perm[n_va:])
+    c_all = onehot(idx, n_obj)
+
+    model = AutoEncoder(method, size, latent, n_obj)
+    n_params = sum(p.numel() for p in model.parameters())
+    log(f"{method}: {n_params / 1e6:.2f} M parameters, {len(tr)} train / {len(va)} validation crops, "
+        f"{n_obj} objects, budget {minutes:.0f} min")
+    hist = train_autoencoder(model, cs.x[tr], cs.y[tr], c_all[tr], cs.x[va], cs.y[va], c_all[va], work,
+                             minutes=minutes, seed=seed, log=log)
+    t_ae = time.perf_counter() - t0
+
+    cond = c_all if method == "cvam" else None
+    mu = encode_all(model, cs.x, cond)
+
+    # ---- regressors (camera-independent features)
+    mdir = Path(synth["config"]["models_dir"])
+    models_info = load_models_info(models_info_path) if models_info_path else None
+    if models_info is None:
+        from .meshes import compute_models_info
+        models_info = compute_models_info(load_models(mdir, obj_ids))
+    symR = _sym_rotations(idx, obj_ids, models_info)
+    K = cs.K
+    centres = np.stack([project(np.zeros((1, 3)), k, None, t)[0] for k, t in zip(K, cs.t)])
+    offsets = box_offset_of_centre(cs.box, centres)
+    size_feat = apparent_size(cs.box, K)
+
+    log("rotation MLP (6D, L1 on R, symmetry-aware) ...")
+    rot = NumpyMLP(hidden=(256, 256), loss="l1_rotation", epochs=400, minutes=reg_minutes, seed=seed).fit(
+        rotation_inputs(mu[tr], idx[tr], n_obj), cs.R[tr], symR[tr], log=log)
+    log("centre MLP ...")
+    cen = NumpyMLP(hidden=(256,), loss="l1", epochs=300, minutes=reg_minutes / 2, seed=seed).fit(
+        centre_inputs(mu[tr], idx[tr], n_obj, cs.box[tr], K[tr]), offsets[tr], log=log)
+    from .geometry import centre_from_box_offset
+    cen_va = centre_from_box_offset(cs.box[va], cen.predict(centre_inputs(mu[va], idx[va], n_obj, cs.box[va], K[va])))
+    dist, knn_info = choose_knn(distance_inputs(mu[tr], idx[tr], n_obj, cs.box[tr], K[tr]),
+                                np.log(cs.t[tr, 2] * size_feat[tr]),
+                                distance_inputs(mu[va], idx[va], n_obj, cs.box[va], K[va]), size_feat[va],
+                                cen_va, cs.t[va], K[va], log=log)
+    # AAE baseline: codebook of training views (subsampled per object to keep the bundle small)
+    cb_idx = np.concatenate([rng.permutation(tr[idx[tr] == i])[:codebook_per_object] for i in range(n_obj)])
+    codebook = Codebook().fit(mu[cb_idx], cs.obj_id[cb_idx], cs.R[cb_idx], cs.t[cb_idx, 2] * size_feat[cb_idx])
+    head = PoseHead(obj_ids, rot, cen, dist)
+
+    # ---- validation figures (synthetic)
+    val = {}
+    for mode in ("regression", "aae"):
+        h = PoseHead(obj_ids, rot, cen, dist, codebook)
+        R_va, t_va = h.predict(mu[va], cs.obj_id[va], cs.box[va], K[va], mode=mode)
+        re = np.array([min(rotation_error_deg(R_va[i], cs.R[va][i] @ S) for S in symR[va][i]) for i in range(len(va))])
+        te = np.linalg.norm(t_va - cs.t[va], axis=1)
+        val[mode] = {"re_median_deg": float(np.median(re)), "te_median_mm": float(np.median(te)),
+                     "re_lt_15deg": float(np.mean(re < 15))}
+        log(f"validation ({mode}): median RE {val[mode]['re_median_deg']:.1f} deg, "
+            f"median TE {val[mode]['te_median_mm']:.1f} mm")
+
+    # ---- export
+    if out.exists():
+        shutil.rmtree(out)
+    (out / "meshes").mkdir(parents=True)
+    import joblib
+    joblib.dump(head, out / "pose_head.joblib", compress=3)
+    joblib.dump(codebook, out / "codebook_aae.joblib", compress=3)
+    xs = to_tensor(cs.x[va[:16]]).numpy()
+    diff = export_encoder(model, size, model.n_cond, out / "encoder.onnx", xs, c_all[va[:16]].numpy() if model.n_cond else None)
+    log(f"encoder.onnx: max |onnx - torch| = {diff:.2e}")
+    if diff > 1e-4:
+        raise UserError(f"exported encoder differs from torch by {diff:.2e} (> 1e-4)")
+    from .bop import save_models_info
+    models = load_models(mdir, obj_ids)
+    objects = []
+    for o in obj_ids:
+        mesh_rel = f"meshes/obj_{o:06d}.ply"
+        models[o].mesh.export(out / mesh_rel)  # binary PLY with vertex colours
+        info = models_info[o]
+        objects.append({"id": o, "name": LMO_NAMES.get(o, f"obj_{o}"), "mesh": mesh_rel,
+                        "diameter": info["diameter"], "symmetries_discrete": info.get("symmetries_discrete", []),
+                        "symmetries_continuous": info.get("symmetries_continuous", [])})
+    save_models_info(out / "meshes" / "models_info.json", {o: models_info[o] for o in obj_ids})
+    Kt = np.asarray(synth["config"]["K"])
+    manifest = {
+        "name": out.name, "method": method, "input_size": size, "latent_size": latent,
+        "objects": objects,
+        "training_camera": {"K": Kt.tolist(), "width": synth["config"]["width"], "height": synth["config"]["height"],
+                            "focal_mean": focal_mean(Kt)},
+        "pose_prior": synth["config"]["prior"],
+        "colour_order": "RGB", "crop": "square on the box, side = longer side, bicubic, pixel values / 255",
+        "artefacts": {"encoder": "encoder.onnx", "pose_head": "pose_head.joblib", "codebook": "codebook_aae.joblib",
+                      "models_info": "meshes/models_info.json"},
+        "training": {"data": str(data_dir), "synth_images": synth.get("images_written", synth.get("images")),
+                     "crops": len(cs), "train": len(tr), "validation": len(va), "ae_parameters": n_params,
+                     "ae_epochs": len(hist["epoch"]), "ae_best_val_l2": float(min(hist["val_l2"])),
+                     "ae_minutes": round(t_ae / 60, 1), "total_minutes": round((time.perf_counter() - t0) / 60, 1),
+                     "knn": knn_info, "seed": seed, "onnx_max_abs_diff": diff},
+        "validation_synthetic": val,
+        "command": command or "app.py " + " ".join(sys.argv[1:]),
+        "created": time.strftime("%Y-%m-%d %H:%M:%S"),
+    }
+    from .bundle import write_manifest
+    write_manifest(out, manifest)
+    total = sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
+    log(f"bundle {out}: {total / 1e6:.1f} MB, {(time.perf_counter() - t0) / 60:.1f} min in all")
+    return manifest
