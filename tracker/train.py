@@ -44,7 +44,7 @@ def choose_knn(Xtr, ytr, Xva, size_va, centre_va_t, t_va, K_va, log=print):
     from .geometry import translation_from_centre
     best = None
     for w in KNN_BOX_WEIGHT:
-        for k in KNN_K:
+        for k in [k for k in KNN_K if k <= len(Xtr)] or [1]:
             m = DistanceKNN(k=k, box_weight=w).fit(Xtr, ytr)
             tz = np.exp(m.predict(Xva)) / size_va
             t = np.stack([translation_from_centre(c, z, KK) for c, z, KK in zip(centre_va_t, tz, K_va)])

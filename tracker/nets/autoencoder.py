@@ -72,7 +72,8 @@ class Decoder(nn.Module):
         self.w0 = widths[0]
         self.fc = nn.Linear(latent + n_cond, widths[0] * self.feat * self.feat)
         ups, cin = [], widths[0]
-        for w in widths[1:] + (widths[-1],):
+        # the last upsampling conv works at full resolution: half the width keeps it cheap
+        for w in widths[1:] + (max(widths[-1] // 2, 8),):
             ups.append(CondConv(cin, w, n_cond))
             cin = w
         self.ups = nn.ModuleList(ups)

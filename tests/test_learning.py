@@ -1,0 +1,124 @@
+"""A tiny end-to-end training per method: the code paths, export, bundle safety and the
+camera independence of the pose head. Accuracy is measured by `app.py eval`, not here."""
+import json
+import shutil
+
+import cv2
+import numpy as np
+import pytest
+
+pytest.importorskip("torch")
+
+from tracker.bop import load_scene  # noqa: E402
+from tracker.bundle import open_bundle  # noqa: E402
+from tracker.errors import UserError  # noqa: E402
+from tracker.estimator import Detection, PoseEstimator  # noqa: E402
+from tracker.geometry import rotation_error_deg, scale_intrinsics  # noqa: E402
+from tracker.synth.engine import SynthConfig, generate  # noqa: E402
+from tracker.train import train_bundle  # noqa: E402
+
+OBJS = [1, 9]
+
+
+@pytest.fixture(scope="module")
+def tiny_split(tmp_path_factory, data_dir):
+    out = tmp_path_factory.mktemp("tiny_synth")
+    cfg = SynthConfig(models_dir=str(data_dir / "lmo" / "models"), backgrounds_dir=str(data_dir / "backgrounds"),
+                      obj_ids=OBJS, seed=2, objects_per_image=(2, 2))
+    generate(cfg, out, 6, workers=1, progress=False)
+    return out
+
+
+def _train(split, out, method):
+    return train_bundle(split, out, method=method, size=32, latent=16, minutes=0.05, reg_minutes=0.02,
+                        models_info_path=None, log=lambda *a: None)
+
+
+@pytest.fixture(scope="module")
+def bundles(tiny_split, tmp_path_factory):
+    root = tmp_path_factory.mktemp("bundles")
+    return {m: (_train(tiny_split, root / m, m), root / m) for m in ("dalsr", "cvml", "cvam")}
+
+
+@pytest.mark.parametrize("method", ["dalsr", "cvml", "cvam"])
+def test_every_method_trains_exports_and_runs(bundles, tiny_split, method):
+    manifest, path = bundles[method]
+    assert manifest["method"] == method and manifest["pose_prior"] == "table"
+    assert manifest["training"]["onnx_max_abs_diff"] <= 1e-4
+    assert {o["id"] for o in manifest["objects"]} == set(OBJS)
+    est = PoseEstimator(path)
+    scene = load_scene(tiny_split / "000000", require_gt=True)
+    img = scene.read_rgb(0)
+    dets = [Detection(g.obj_id, np.array(g.info["bbox_visib"], float)) for g in scene.gt[0]
+            if g.info["visib_fract"] > 0.1]
+    for mode in ("regression", "aae"):
+        poses = est.estimate(img, scene.K(0), dets, mode=mode)
+        assert len(poses) == len(dets)
+        for p in poses:
+            assert np.allclose(p.R @ p.R.T, np.eye(3), atol=1e-6) and 10 < p.t[2] < 10000
+
+
+def test_tampered_or_missing_files_are_refused(bundles, tmp_path):
+    _, src = bundles["cvam"]
+    b = tmp_path / "b"
+    shutil.copytree(src, b)
+    with open(b / "pose_head.joblib", "ab") as f:
+        f.write(b"\0")
+    with pytest.raises(UserError, match="SHA-256"):
+        open_bundle(b)
+    shutil.rmtree(b)
+    shutil.copytree(src, b)
+    (b / "encoder.onnx").unlink()
+    with pytest.raises(UserError, match="missing"):
+        PoseEstimator(b)
+    shutil.rmtree(b)
+    shutil.copytree(src, b)
+    m = json.loads((b / "manifest.json").read_text())
+    m["artefacts"]["pose_head"] = "../../evil.joblib"
+    (b / "manifest.json").write_text(json.dumps(m))
+    with pytest.raises(UserError, match="not hashed"):
+        PoseEstimator(b)
+
+
+def test_unknown_object_is_a_clear_error(bundles, tiny_split):
+    est = PoseEstimator(bundles["cvam"][1])
+    img = load_scene(tiny_split / "000000").read_rgb(0)
+    with pytest.raises(UserError, match="not in this bundle"):
+        est.estimate(img, np.eye(3), [Detection(42, np.array([10, 10, 50, 50.0]))])
+    assert est.estimate(img, np.eye(3), []) == []
+
+
+def test_pose_does_not_depend_on_camera_or_resolution(bundles, tiny_split):
+    """The same view seen by a camera of another resolution, and with the principal point
+    elsewhere, gives the same pose: box features are normalised by the intrinsics."""
+    est = PoseEstimator(bundles["cvam"][1])
+    scene = load_scene(tiny_split / "000000", require_gt=True)
+    img, K = scene.read_rgb(1), scene.K(1)
+    g = max(scene.gt[1], key=lambda g: g.info["visib_fract"])
+    box = np.array(g.info["bbox_visib"], float)
+    (p1,) = est.estimate(img, K, [Detection(g.obj_id, box)])
+    # 2x resolution: image, intrinsics and box scale together
+    img2 = cv2.resize(img, (1280, 960), interpolation=cv2.INTER_CUBIC)
+    K2 = scale_intrinsics(K, (640, 480), (1280, 960))
+    box2 = np.array([(box[0] + 0.5) * 2 - 0.5, (box[1] + 0.5) * 2 - 0.5, box[2] * 2, box[3] * 2])
+    (p2,) = est.estimate(img2, K2, [Detection(g.obj_id, box2)])
+    assert rotation_error_deg(p1.R, p2.R) < 3.0
+    assert np.linalg.norm(p1.t - p2.t) < 0.03 * p1.t[2]
+    # the same pixels with the image shifted by 40 px (principal point moves along)
+    img3 = np.zeros_like(img)
+    img3[:, 40:] = img[:, :-40]
+    K3 = K.copy()
+    K3[0, 2] += 40
+    (p3,) = est.estimate(img3, K3, [Detection(g.obj_id, box + [40, 0, 0, 0])])
+    assert rotation_error_deg(p1.R, p3.R) < 3.0
+    assert np.linalg.norm(p1.t - p3.t) < 0.03 * p1.t[2]
+
+
+def test_training_resumes_from_its_checkpoint(tiny_split, tmp_path):
+    out = tmp_path / "m"
+    _train(tiny_split, out, "cvml")
+    ck = tmp_path / "m.work" / "ae_checkpoint.pt"
+    assert ck.is_file()
+    logs = []
+    train_bundle(tiny_split, out, method="cvml", size=32, latent=16, minutes=0.1, reg_minutes=0.02, log=logs.append)
+    assert any(str(l).startswith("resumed from") for l in logs)
