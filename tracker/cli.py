@@ -14,7 +14,6 @@ from .errors import NotLanded, UserError
 PENDING = {
     "track": (7, "the frame loop"),
     "bench": (7, "per-stage latency benchmark"),
-    "imu": (8, "IMU comparison"),
 }
 
 
@@ -141,6 +140,19 @@ def cmd_eval(args) -> int:
     return 0
 
 
+def cmd_imu(args) -> int:
+    from .imu import compare, read_imu_log, read_run, write_report
+    run = read_run(args.run, obj_id=args.obj_id)
+    log = read_imu_log(args.imu, max_gap_s=args.max_gap)
+    rep = compare(run, log, mode=args.mode)
+    files = write_report(args.out, rep)
+    print(f"{rep['n_pairs']} frame/IMU pairs, clock offset {rep['time_offset_s'] * 1000:.1f} ms: RE mean "
+          f"{rep['re_mean_deg']:.2f} deg, median {rep['re_median_deg']:.2f}, p90 {rep['re_p90_deg']:.2f}, "
+          f"max {rep['re_max_deg']:.2f} ({args.mode} mode)")
+    print("wrote " + ", ".join(str(p) for p in files.values()))
+    return 0
+
+
 def cmd_pending(args) -> int:
     issue, what = PENDING[args.command]
     raise NotLanded(f"'{args.command}' ({what}) has not landed yet: see issue {issue}")
@@ -217,7 +229,18 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--max-frames", type=int)
     s.set_defaults(func=cmd_eval)
 
-    for name in ("bench", "imu"):
+    s = sub.add_parser("imu", help="compare tracked rotations with an IMU fixed to the object")
+    s.add_argument("--run", required=True, help="a 'track' run folder (poses.csv, timings.csv)")
+    s.add_argument("--imu", required=True, help="IMU log CSV: t,qw,qx,qy,qz[,gx,gy,gz]")
+    s.add_argument("--out", required=True, help="folder for imu_report.json and the plots")
+    s.add_argument("--obj-id", type=int, help="the tracked object carrying the IMU")
+    s.add_argument("--mode", choices=["full", "simple"], default="full",
+                   help="full: estimate clock offset, mounting and world rotations; simple: the "
+                        "thesis's relative-to-first-sample comparison")
+    s.add_argument("--max-gap", type=float, default=0.25, help="never interpolate across IMU gaps longer (s)")
+    s.set_defaults(func=cmd_imu)
+
+    for name in ("bench",):
         s = sub.add_parser(name, help=PENDING[name][1])
         s.set_defaults(func=cmd_pending)
 
