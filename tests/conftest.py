@@ -30,3 +30,18 @@ def lmo_dev(data_dir):
 def lmo_models(data_dir):
     from tracker.meshes import load_models
     return load_models(data_dir / "lmo" / "models")
+
+
+@pytest.fixture(scope="session")
+def tiny_bundle(tmp_path_factory, data_dir):
+    """A bundle for all 8 LM-O objects, trained for seconds: exercises code paths only."""
+    pytest.importorskip("torch")
+    from tracker.synth.engine import SynthConfig, generate
+    from tracker.train import train_bundle
+    root = tmp_path_factory.mktemp("tiny_bundle")
+    cfg = SynthConfig(models_dir=str(data_dir / "lmo" / "models"), backgrounds_dir=str(data_dir / "backgrounds"),
+                      seed=4, objects_per_image=(8, 8))
+    generate(cfg, root / "split", 3, workers=1, progress=False)
+    train_bundle(root / "split", root / "lmo", method="cvam", size=32, latent=16, minutes=0.03, reg_minutes=0.01,
+                 models_info_path=REPO / "models" / "lmo_models_info.json", log=lambda *a: None)
+    return root / "lmo"

@@ -12,7 +12,6 @@ from .errors import NotLanded, UserError
 
 # Commands of CONVENTIONS.md whose implementation has not landed yet, with their issue.
 PENDING = {
-    "track": (7, "the frame loop"),
     "bench": (7, "per-stage latency benchmark"),
 }
 
@@ -26,12 +25,22 @@ def _default_run_dir(name: str) -> Path:
 
 
 def cmd_demo(args) -> int:
-    """Until the tracker lands: the ground-truth overlay of the bundled LM-O dev scene."""
-    from .paths import lmo_dev_scene, lmo_models
-    from .preview import render_gt_overlays
+    """The LM-O dev frames through the full pipeline with the bundled models/lmo (ground-truth
+    boxes until the detector lands); without a bundle, the ground-truth overlay."""
+    from .paths import REPO, lmo_dev_scene, lmo_models
     out = Path(args.out) if args.out else _default_run_dir("demo")
-    print("demo: the tracker (issue 7) has not landed yet; rendering the ground-truth poses of the "
-          "LM-O dev scene over its frames instead", file=sys.stderr)
+    bundle = REPO / "models" / "lmo"
+    if (bundle / "manifest.json").is_file():
+        from .loop import TrackConfig, run_track
+        print("demo: LM-O dev frames -> ground-truth boxes (no detector yet, issue 6) -> models/lmo -> "
+              "poses, overlay, rerun", file=sys.stderr)
+        s = run_track(TrackConfig(str(lmo_dev_scene()), str(bundle), out, rerun="save", max_frames=args.max_frames),
+                      log=lambda m: print(m, file=sys.stderr))
+        _print_run(s, out)
+        return 130 if s["interrupted"] else 0
+    from .preview import render_gt_overlays
+    print("demo: no models/lmo bundle; rendering the ground-truth poses of the LM-O dev scene over its "
+          "frames instead", file=sys.stderr)
     s = render_gt_overlays(lmo_dev_scene(), lmo_models(), out, max_frames=args.max_frames)
     print(f"{s.frames} frames, {s.instances} object instances rendered at their ground-truth poses "
           f"({s.ms_per_frame_render:.0f} ms/frame render)")
@@ -153,6 +162,35 @@ def cmd_imu(args) -> int:
     return 0
 
 
+def _print_run(s: dict, out: Path) -> None:
+    st = s["stages_ms"]
+    print(f"{s['frames']} frames, {s['poses']} poses, {s['fps']} fps end to end"
+          + (" (interrupted)" if s["interrupted"] else "") + (f", {s['dropped_frames']} frames dropped" if s["dropped_frames"] else ""))
+    print("median ms per frame: " + ", ".join(f"{k} {v['median']:.1f}" for k, v in st.items() if v["median"] is not None))
+    if s.get("accuracy"):
+        a = s["accuracy"]
+        print(f"accuracy against the ground truth: ADD(I) {a['add_recall']:.3f}, AR_MSSD {a['ar_mssd']:.3f}, "
+              f"AR_MSPD {a['ar_mspd']:.3f}, median RE {a['re_median_deg']:.1f} deg, median TE {a['te_median_mm']:.1f} mm")
+    print(f"run folder: {out} (poses.csv, timings.csv, summary.json)")
+    if s.get("recording"):
+        print(f"rerun recording: {s['recording']}  (open it with: .venv/bin/rerun {s['recording']}, "
+              f"or headless: .venv/bin/rerun --serve-web {s['recording']})")
+    if s.get("camera_lost"):
+        print("warning: the camera stopped delivering frames (unplugged?); the logs above are complete", file=sys.stderr)
+    if s.get("video_truncated"):
+        print("warning: the video ended before its declared length (truncated file?)", file=sys.stderr)
+
+
+def cmd_track(args) -> int:
+    from .loop import TrackConfig, run_track
+    out = Path(args.out) if args.out else _default_run_dir("track")
+    cfg = TrackConfig(args.source, args.model, out, args.calib, args.rerun, args.max_frames, args.realtime,
+                      not args.no_overlay, args.boxes)
+    s = run_track(cfg, log=lambda m: print(m, file=sys.stderr))
+    _print_run(s, out)
+    return 130 if s["interrupted"] else 0
+
+
 def cmd_pending(args) -> int:
     issue, what = PENDING[args.command]
     raise NotLanded(f"'{args.command}' ({what}) has not landed yet: see issue {issue}")
@@ -172,7 +210,18 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_demo)
 
     s = sub.add_parser("track", help="the frame loop on a camera, video, image folder or BOP scene")
-    s.set_defaults(func=cmd_pending)
+    s.add_argument("--source", required=True, help="camera index or /dev/videoN, video file, image folder, BOP scene")
+    s.add_argument("--model", default=str(Path(__file__).resolve().parents[1] / "models" / "lmo"),
+                   help="model bundle (default models/lmo)")
+    s.add_argument("--calib", help="camera file (needed for cameras, videos and image folders)")
+    s.add_argument("--out", help="run folder (default runs/track-TIMESTAMP)")
+    s.add_argument("--rerun", choices=["spawn", "serve", "save", "off"], default="save")
+    s.add_argument("--max-frames", type=int)
+    s.add_argument("--realtime", action="store_true", help="play recordings at their recorded rate")
+    s.add_argument("--no-overlay", action="store_true", help="skip rendering the overlay")
+    s.add_argument("--boxes", choices=["auto", "gt", "detector"], default="auto",
+                   help="auto: ground truth on BOP scenes that have it, else the bundle's detector")
+    s.set_defaults(func=cmd_track)
 
     s = sub.add_parser("calibrate", help="checkerboard calibration -> camera file")
     g = s.add_mutually_exclusive_group()

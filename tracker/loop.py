@@ -1,0 +1,183 @@
+"""The frame loop: capture -> undistort -> boxes -> crops -> encoder -> regressors -> overlay
+-> logs. ``app.py track`` and ``app.py demo`` are thin layers over :func:`run_track`."""
+from __future__ import annotations
+
+import json
+import signal
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .bop import Estimate
+from .camera import Undistorter, read_camera
+from .errors import UserError
+from .estimator import Detection, PoseEstimator
+from .sinks import STAGES, CsvSink, RerunSink
+
+
+@dataclass
+class TrackConfig:
+    source: str
+    model: str
+    out: Path
+    calib: str | None = None
+    rerun: str = "off"
+    max_frames: int | None = None
+    realtime: bool = False
+    overlay: bool = True
+    boxes: str = "auto"  # auto: ground truth on BOP scenes with it, else the bundle's detector
+
+
+class _Stopper:
+    """SIGINT / SIGTERM end the loop after the frame in flight."""
+
+    def __init__(self):
+        self.stop = False
+        self._old = {}
+
+    def __enter__(self):
+        for s in (signal.SIGINT, signal.SIGTERM):
+            self._old[s] = signal.signal(s, self._handle)
+        return self
+
+    def _handle(self, *_):
+        self.stop = True
+
+    def __exit__(self, *exc):
+        for s, h in self._old.items():
+            signal.signal(s, h)
+
+
+def _gt_detections(frame, boxes_of, known) -> list[Detection]:
+    """Ground-truth visible boxes of the bundle's objects that are at least 10 % visible."""
+    if boxes_of is not None and frame.index in boxes_of:
+        return [Detection(g.obj_id, b) for g, (b, v) in zip(frame.gt, boxes_of[frame.index])
+                if v >= 0.1 and b[2] > 1 and g.obj_id in known]
+    return []
+
+
+def run_track(cfg: TrackConfig, log=print) -> dict:
+    from .meshes import load_mesh
+    from .overlay import blend, colour, draw_axes, draw_box
+    from .sources import BopSceneSource, open_source
+    est = PoseEstimator(cfg.model)
+    names = {o["id"]: o["name"] for o in est.bundle.objects}
+    src = open_source(cfg.source, max_frames=cfg.max_frames, realtime=cfg.realtime)
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    boxes_of = None
+    if cfg.boxes in ("auto", "gt") and isinstance(src, BopSceneSource) and src.scene.gt:
+        from .evaluate import gt_boxes
+        from .meshes import load_models
+        ids = sorted({g.obj_id for i in src.ids for g in src.scene.gt.get(i, [])} & set(est.obj_ids))
+        boxes_of, _ = gt_boxes(src.scene, load_models(est.bundle.root / "meshes", ids), src.ids)
+    elif cfg.boxes == "gt":
+        raise UserError("--boxes gt needs a BOP scene with scene_gt.json")
+    elif "detector" not in est.bundle.manifest.get("artefacts", {}):
+        log("warning: this bundle has no detector (issue 6) and the source has no ground truth: "
+            "no boxes, so no poses; frames are still logged")
+    meshes = {o["id"]: load_mesh(est.bundle.root / o["mesh"], o["id"]).mesh for o in est.bundle.objects}
+    diam = {o["id"]: o["diameter"] for o in est.bundle.objects}
+    cam = read_camera(cfg.calib) if cfg.calib else None
+    undist = Undistorter(cam) if cam else None
+    csv_sink = CsvSink(out)
+    renderer = rr_sink = None
+    n = 0
+    t_run = time.perf_counter()
+    stage_log = {s: [] for s in STAGES}
+    n_poses = 0
+    last = time.perf_counter()
+    fps = None
+    try:
+        with _Stopper() as stopper:
+            it = iter(src)
+            while not stopper.stop:
+                t0 = time.perf_counter()
+                try:
+                    frame = next(it)
+                except StopIteration:
+                    break
+                ms = {"capture": 1000 * (time.perf_counter() - t0)}
+                t = time.perf_counter()
+                h, w = frame.rgb.shape[:2]
+                if frame.K is not None:
+                    K, rgb = frame.K, frame.rgb
+                elif undist is not None:
+                    K, rgb = undist.camera_for(w, h).K, undist(frame.rgb)
+                else:
+                    raise UserError("this source needs a camera file: pass --calib FILE")
+                ms["undistort"] = 1000 * (time.perf_counter() - t)
+                t = time.perf_counter()
+                dets = _gt_detections(frame, boxes_of, set(est.obj_ids))
+                ms["detect"] = 1000 * (time.perf_counter() - t)
+                t = time.perf_counter()
+                poses = est.estimate(rgb, K, dets, timings=ms) if dets else []
+                ms.setdefault("encode", 0.0)  # crops + encoder
+                ms.setdefault("regress", 0.0)
+                t = time.perf_counter()
+                vis = None
+                if cfg.overlay:
+                    if renderer is None or (renderer.width, renderer.height) != (w, h):
+                        from .render import Renderer
+                        renderer = Renderer(w, h, meshes)
+                    col, depth = renderer.render(K, [(p.obj_id, p.R, p.t) for p in poses])
+                    vis = blend(rgb, col, depth, 0.6)
+                    for p in poses:
+                        draw_box(vis, p.box, colour(p.obj_id), names.get(p.obj_id))
+                        draw_axes(vis, K, p.R, p.t, 0.3 * diam[p.obj_id])
+                ms["render"] = 1000 * (time.perf_counter() - t)
+                t = time.perf_counter()
+                if rr_sink is None:
+                    rr_sink = RerunSink(cfg.rerun, out, meshes, names, K, (w, h))
+                rr_sink.log_frame(frame.index, rgb, vis, dets, poses)
+                dt_frame = time.perf_counter() - t0
+                ests = [Estimate(0 if not isinstance(src, BopSceneSource) else _scene_id(cfg.source), frame.index,
+                                 p.obj_id, p.score, p.R, p.t, dt_frame) for p in poses]
+                ms["log"] = 1000 * (time.perf_counter() - t)
+                ms["total"] = 1000 * (time.perf_counter() - t0)
+                csv_sink.write(ests, frame.index, frame.t_capture, ms)
+                rr_sink.log_timings(ms, fps)
+                for k in STAGES:
+                    stage_log[k].append(ms.get(k, 0.0))
+                now = time.perf_counter()
+                fps = 1.0 / max(now - last, 1e-6)
+                last = now
+                n += 1
+                n_poses += len(poses)
+            interrupted = stopper.stop
+    finally:
+        csv_sink.close()
+        src.close()
+        if rr_sink is not None:
+            rr_sink.close()
+        if renderer is not None:
+            renderer.close()
+    wall = time.perf_counter() - t_run
+    summary = {
+        "frames": n, "poses": n_poses, "wall_s": round(wall, 2), "fps": round(n / wall, 2) if wall > 0 else None,
+        "stages_ms": {k: {"median": float(np.median(v)) if v else None,
+                          "p95": float(np.percentile(v, 95)) if v else None} for k, v in stage_log.items()},
+        "dropped_frames": int(getattr(src, "dropped", 0)), "interrupted": interrupted,
+        "camera_lost": bool(getattr(src, "lost", False)), "video_truncated": bool(getattr(src, "truncated", False)),
+        "source": str(cfg.source), "model": str(cfg.model), "boxes": "gt" if boxes_of is not None else "none",
+        "recording": str(rr_sink.path) if rr_sink is not None and rr_sink.path else None,
+    }
+    gt_objs = {g.obj_id for i in getattr(src, "ids", [])[:n] for g in (src.scene.gt or {}).get(i, [])} \
+        if boxes_of is not None else set()
+    if boxes_of is not None and n and gt_objs <= set(est.obj_ids):
+        from .scoring import score_results
+        m = score_results(out / "poses.csv", src.scene.root, est.bundle.root / "meshes",
+                          models_info=est.bundle.root / "meshes" / "models_info.json",
+                          im_ids=src.ids[:n], scene_id=_scene_id(cfg.source))
+        summary["accuracy"] = {k: m[k] for k in ("n_gt", "add_recall", "ar_mssd", "ar_mspd", "re_median_deg",
+                                                 "te_median_mm", "visibility_source")}
+    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    return summary
+
+
+def _scene_id(source) -> int:
+    name = Path(str(source)).name
+    return int(name) if name.isdigit() else 0

@@ -1,0 +1,109 @@
+"""Where a run's results go: BOP poses CSV, per-frame timings CSV (both flushed every frame,
+so an interrupt loses at most the frame in flight) and rerun."""
+from __future__ import annotations
+
+import csv
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from .bop import RESULT_HEADER, Estimate, format_result_row
+
+STAGES = ("capture", "undistort", "detect", "encode", "regress", "render", "log", "total")
+
+
+class CsvSink:
+    def __init__(self, out_dir: Path):
+        out_dir.mkdir(parents=True, exist_ok=True)
+        self._pf = open(out_dir / "poses.csv", "w", newline="")
+        self._tf = open(out_dir / "timings.csv", "w", newline="")
+        self._pw = csv.writer(self._pf, lineterminator="\n")
+        self._tw = csv.writer(self._tf, lineterminator="\n")
+        self._pw.writerow(RESULT_HEADER)
+        self._tw.writerow(["im_id", "t_capture", *STAGES])
+        self._pf.flush()
+        self._tf.flush()
+
+    def write(self, estimates: list[Estimate], im_id: int, t_capture: float, stages_ms: dict):
+        for e in estimates:
+            self._pw.writerow(format_result_row(e))
+        self._tw.writerow([im_id, f"{t_capture:.6f}", *(f"{stages_ms.get(s, 0.0):.3f}" for s in STAGES)])
+        self._pf.flush()
+        self._tf.flush()
+
+    def close(self):
+        self._pf.close()
+        self._tf.close()
+
+
+class RerunSink:
+    """rerun logging. ``mode``: spawn (a local viewer), serve (web viewer, URL printed),
+    save (OUT/recording.rrd) or off."""
+
+    def __init__(self, mode: str, out_dir: Path, meshes: dict, names: dict, K: np.ndarray, size):
+        self.mode = mode
+        self.rr = None
+        self.path = None
+        if mode == "off":
+            return
+        import rerun as rr
+        self.rr = rr
+        rr.init("autopose", spawn=False)
+        if mode == "save":
+            self.path = Path(out_dir) / "recording.rrd"
+            rr.save(self.path)
+        elif mode == "spawn":
+            rr.spawn()
+        elif mode == "serve":
+            uri = rr.serve_grpc()
+            rr.serve_web_viewer(connect_to=uri, open_browser=False)
+            print(f"rerun web viewer: http://localhost:9090/?url={uri}", file=sys.stderr)
+        rr.log("world", rr.ViewCoordinates.RDF, static=True)  # OpenCV camera: x right, y down, z forward
+        for oid, mesh in meshes.items():
+            cols = getattr(mesh.visual, "vertex_colors", None)
+            rr.log(f"world/objects/{names.get(oid, oid)}/mesh",
+                   rr.Mesh3D(vertex_positions=np.asarray(mesh.vertices, np.float32),
+                             triangle_indices=np.asarray(mesh.faces, np.uint32),
+                             vertex_colors=None if cols is None else np.asarray(cols)[:, :3]), static=True)
+        self.set_camera(K, size)
+        self.names = names
+
+    def set_camera(self, K, size):
+        if self.rr:
+            self.rr.log("world/camera", self.rr.Pinhole(image_from_camera=np.asarray(K), resolution=list(size)),
+                        static=True)
+
+    def log_frame(self, index, frame_rgb, overlay_rgb, detections, poses):
+        rr = self.rr
+        if rr is None:
+            return
+        rr.set_time("frame", sequence=int(index))
+        rr.log("world/camera/image", rr.Image(frame_rgb).compress(jpeg_quality=75))
+        if overlay_rgb is not None:
+            rr.log("overlay", rr.Image(overlay_rgb).compress(jpeg_quality=75))
+        if detections:
+            rr.log("world/camera/image/boxes", rr.Boxes2D(array=np.array([d.box for d in detections]),
+                                                          array_format=rr.Box2DFormat.XYWH,
+                                                          labels=[self.names.get(d.obj_id, str(d.obj_id)) for d in detections]))
+        else:
+            rr.log("world/camera/image/boxes", rr.Clear(recursive=False))
+        seen = set()
+        for p in poses:
+            name = self.names.get(p.obj_id, str(p.obj_id))
+            seen.add(name)
+            rr.log(f"world/objects/{name}", rr.Transform3D(translation=p.t, mat3x3=p.R))
+
+    def log_timings(self, stages_ms: dict, fps):
+        """Per-stage milliseconds of the frame last logged (and the running fps)."""
+        rr = self.rr
+        if rr is None:
+            return
+        for k, v in stages_ms.items():
+            rr.log(f"timings/{k}_ms", rr.Scalars(float(v)))
+        if fps:
+            rr.log("timings/fps", rr.Scalars(float(fps)))
+
+    def close(self):
+        if self.rr is not None:
+            self.rr.disconnect()
