@@ -29,11 +29,13 @@ def test_help_lists_the_commands():
         assert f"    {c}" in p.stdout
 
 
-@pytest.mark.parametrize("cmd", ["track", "bench"])
-def test_commands_not_landed_say_so(cmd):
-    p = run(cmd, "--anything", "x")
-    assert_one_line_error(p, code=2)
-    assert "has not landed yet" in p.stderr and p.stdout == ""
+def test_bad_bundle_and_bad_source_are_one_line_errors(tmp_path, data_dir):
+    p = run("track", "--source", data_dir / "lmo" / "dev", "--model", tmp_path / "no-bundle", "--max-frames", 1)
+    assert_one_line_error(p)
+    assert "model bundle not found" in p.stderr
+    p = run("eval", "--model", tmp_path, "--data", data_dir / "lmo" / "dev", "--json", tmp_path / "m.json")
+    assert_one_line_error(p)
+    assert "manifest.json" in p.stderr
 
 
 def test_calibrate_command(data_dir, tmp_path):

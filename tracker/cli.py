@@ -8,12 +8,8 @@ import time
 import warnings
 from pathlib import Path
 
-from .errors import NotLanded, UserError
+from .errors import UserError
 
-# Commands of CONVENTIONS.md whose implementation has not landed yet, with their issue.
-PENDING = {
-    "bench": (7, "per-stage latency benchmark"),
-}
 
 
 def _default_run_dir(name: str) -> Path:
@@ -191,9 +187,38 @@ def cmd_track(args) -> int:
     return 130 if s["interrupted"] else 0
 
 
-def cmd_pending(args) -> int:
-    issue, what = PENDING[args.command]
-    raise NotLanded(f"'{args.command}' ({what}) has not landed yet: see issue {issue}")
+def cmd_bench(args) -> int:
+    import json
+    import tempfile
+
+    import numpy as np
+
+    from .loop import TrackConfig, run_track
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(args.out) if args.out else Path(tmp)
+        s = run_track(TrackConfig(args.source, args.model, out, args.calib, args.rerun, args.frames, False,
+                                  not args.no_overlay), log=lambda m: print(m, file=sys.stderr))
+        rows = [l.split(",") for l in (out / "timings.csv").read_text().splitlines()]
+    head, rows = rows[0], rows[1:]
+    col = {h: i for i, h in enumerate(head)}
+    per = {k: np.array([float(r[col[k]]) for r in rows]) for k in head[2:]}
+    if args.skip_first and len(rows) > args.skip_first:
+        per = {k: v[args.skip_first:] for k, v in per.items()}  # warm-up frames (GL, first inference)
+    objs = s["poses"] / max(s["frames"], 1)
+    total = per["total"]
+    res = {"frames": int(len(total)), "objects_per_frame": round(objs, 2),
+           "fps": round(1000.0 / float(np.median(total)), 2) if len(total) else None,
+           "ms_per_object": round(float(np.median(per["encode"] + per["regress"])) / objs, 3) if objs else None,
+           "stages_ms": {k: {"median": round(float(np.median(v)), 3), "p95": round(float(np.percentile(v, 95)), 3)}
+                         for k, v in per.items()},
+           "source": str(args.source), "model": str(args.model), "rerun": args.rerun, "overlay": not args.no_overlay}
+    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.json).write_text(json.dumps(res, indent=1))
+    print(f"{res['frames']} frames, {res['objects_per_frame']} objects/frame: {res['fps']} fps (median), "
+          f"{res['ms_per_object']} ms per object (crop + encoder + regressors)")
+    print("median / p95 ms: " + ", ".join(f"{k} {v['median']:.1f}/{v['p95']:.1f}" for k, v in res["stages_ms"].items()))
+    print(f"wrote {args.json}")
+    return 0
 
 
 # --------------------------------------------------------------------------- parser
@@ -289,9 +314,17 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--max-gap", type=float, default=0.25, help="never interpolate across IMU gaps longer (s)")
     s.set_defaults(func=cmd_imu)
 
-    for name in ("bench",):
-        s = sub.add_parser(name, help=PENDING[name][1])
-        s.set_defaults(func=cmd_pending)
+    s = sub.add_parser("bench", help="per-stage latency of the live pipeline")
+    s.add_argument("--model", default=str(Path(__file__).resolve().parents[1] / "models" / "lmo"))
+    s.add_argument("--source", required=True)
+    s.add_argument("--calib")
+    s.add_argument("--frames", type=int, default=50)
+    s.add_argument("--skip-first", type=int, default=2, help="warm-up frames left out of the statistics")
+    s.add_argument("--rerun", choices=["save", "off"], default="save")
+    s.add_argument("--no-overlay", action="store_true")
+    s.add_argument("--out", help="keep the run folder here")
+    s.add_argument("--json", required=True)
+    s.set_defaults(func=cmd_bench)
 
     s = sub.add_parser("preview", help="render a BOP scene's ground-truth poses over its frames")
     s.add_argument("--data", required=True, help="BOP scene folder")
@@ -312,16 +345,11 @@ def main(argv=None) -> int:
     parser = build_parser()
     if not argv:
         argv = ["demo"]
-    args, extra = parser.parse_known_args(argv)
-    if extra and args.func is not cmd_pending:
-        parser.error(f"unrecognized arguments: {' '.join(extra)}")
+    args = parser.parse_args(argv)
     warnings.simplefilter("default")
     warnings.formatwarning = lambda msg, cat, *a, **k: f"warning: {msg}\n"
     try:
         return args.func(args)
-    except NotLanded as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
     except UserError as e:
         print(f"error: {e}", file=sys.stderr)
         return 1

@@ -4,7 +4,3 @@
 class UserError(Exception):
     """Bad input that the user can fix. The CLI prints the message on one line and exits
     non-zero, without a traceback; keep the message short and say what to do."""
-
-
-class NotLanded(UserError):
-    """A command whose implementation has not landed yet."""

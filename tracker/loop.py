@@ -16,6 +16,7 @@ from .camera import Undistorter, read_camera
 from .errors import UserError
 from .estimator import Detection, PoseEstimator
 from .sinks import STAGES, CsvSink, RerunSink
+from .synth.priors import in_prior
 
 
 @dataclass
@@ -89,6 +90,8 @@ def run_track(cfg: TrackConfig, log=print) -> dict:
     t_run = time.perf_counter()
     stage_log = {s: [] for s in STAGES}
     n_poses = 0
+    prior = est.bundle.manifest.get("pose_prior", "sphere")
+    out_of_prior = 0
     last = time.perf_counter()
     fps = None
     try:
@@ -147,6 +150,11 @@ def run_track(cfg: TrackConfig, log=print) -> dict:
                 last = now
                 n += 1
                 n_poses += len(poses)
+                bad = sum(not in_prior(prior, p.R, p.t) for p in poses)
+                if bad and not out_of_prior:
+                    log(f"warning: estimated poses leave the bundle's '{prior}' pose prior (camera elevation "
+                        f"outside what it was trained on); expect larger errors there")
+                out_of_prior += bad
             interrupted = stopper.stop
     finally:
         csv_sink.close()
@@ -160,7 +168,7 @@ def run_track(cfg: TrackConfig, log=print) -> dict:
         "frames": n, "poses": n_poses, "wall_s": round(wall, 2), "fps": round(n / wall, 2) if wall > 0 else None,
         "stages_ms": {k: {"median": float(np.median(v)) if v else None,
                           "p95": float(np.percentile(v, 95)) if v else None} for k, v in stage_log.items()},
-        "dropped_frames": int(getattr(src, "dropped", 0)), "interrupted": interrupted,
+        "dropped_frames": int(getattr(src, "dropped", 0)), "pose_prior": prior, "poses_outside_prior": out_of_prior, "interrupted": interrupted,
         "camera_lost": bool(getattr(src, "lost", False)), "video_truncated": bool(getattr(src, "truncated", False)),
         "source": str(cfg.source), "model": str(cfg.model), "boxes": "gt" if boxes_of is not None else "none",
         "recording": str(rr_sink.path) if rr_sink is not None and rr_sink.path else None,

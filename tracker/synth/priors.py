@@ -107,3 +107,19 @@ def table_occluder_pose(rng: np.random.Generator, target_t: np.ndarray) -> tuple
     frac = rng.uniform(0.45, 0.8)
     t = target_t * frac + rng.normal(0, 25, 3) * np.array([1, 1, 0])
     return Rotation.random(random_state=rng).as_matrix(), t
+
+
+def view_elevation_deg(R: np.ndarray, t: np.ndarray) -> float:
+    """Elevation of the camera above the plane the object stands on (model z up): 90 looking
+    straight down, 0 level with the table, negative from below."""
+    v = np.asarray(t, dtype=np.float64) / np.linalg.norm(t)
+    return float(np.degrees(np.arcsin(np.clip(-np.asarray(R)[:, 2] @ v, -1.0, 1.0))))
+
+
+def in_prior(prior: str, R: np.ndarray, t: np.ndarray, margin_deg: float = 10.0) -> bool:
+    """Whether a pose is one the ``prior`` produces (``sphere``: any)."""
+    if prior != "table":
+        return True
+    tp = TablePrior()
+    e = view_elevation_deg(R, t)
+    return tp.elevation_deg[0] - tp.tilt_deg - margin_deg <= e <= tp.elevation_deg[1] + tp.tilt_deg + margin_deg
