@@ -2,7 +2,6 @@
 import subprocess
 import sys
 
-import pytest
 
 from tests.conftest import REPO
 from tracker.camera import read_camera
@@ -73,8 +72,10 @@ def test_models_info_command(tmp_path, data_dir):
     assert "obj 1: diameter 102.10 mm, 0 discrete symmetries" in p.stdout
 
 
-def test_demo_default_writes_overlays(tmp_path):
+def test_demo_runs_the_bundled_model_through_the_tracker(tmp_path):
+    assert (REPO / "models" / "lmo" / "manifest.json").is_file(), "the lmo bundle ships with the repo"
     p = run("demo", "--out", tmp_path / "run", "--max-frames", 3)
     assert p.returncode == 0, p.stderr
-    assert (tmp_path / "run" / "overlay_montage.png").is_file()
-    assert "ground-truth" in p.stderr and "box IoU" in p.stdout
+    for f in ("poses.csv", "timings.csv", "summary.json", "recording.rrd"):
+        assert (tmp_path / "run" / f).is_file(), f
+    assert "accuracy against the ground truth" in p.stdout and "rerun recording" in p.stdout

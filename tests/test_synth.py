@@ -1,6 +1,5 @@
 import filecmp
 import json
-import shutil
 
 import cv2
 import numpy as np

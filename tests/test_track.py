@@ -1,6 +1,5 @@
 """The frame loop on short replays: files written, rerun recording readable, threaded capture."""
 import json
-import threading
 import time
 
 import cv2

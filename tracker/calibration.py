@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import glob as globmod
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import cv2
 import numpy as np

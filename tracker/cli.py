@@ -11,7 +11,6 @@ from pathlib import Path
 from .errors import UserError
 
 
-
 def _default_run_dir(name: str) -> Path:
     from .paths import REPO
     return REPO / "runs" / f"{name}-{time.strftime('%Y%m%d-%H%M%S')}"

@@ -17,7 +17,6 @@ the images in flight).
 """
 from __future__ import annotations
 
-import json
 import multiprocessing as mp
 import os
 import resource
@@ -253,7 +252,8 @@ def generate(cfg: SynthConfig, out_dir, n_images: int, workers: int = 2, batch: 
         bar.close()
         writer.flush()
         if pool:
-            pool.close() if not interrupted else None
+            if not interrupted:
+                pool.close()
             pool.join()
         else:
             for k in ("scene", "crop"):
