@@ -47,9 +47,11 @@ class NumpyMLP(BaseEstimator, RegressorMixin):
         return matrix_from_rot6d(out) if self.loss == "l1_rotation" else out
 
     # -- training (torch)
-    def fit(self, X, Y, sym_R=None, X_val=None, Y_val=None, log=None):
+    def fit(self, X, Y, sym_R=None, X_val=None, Y_val=None, sym_val=None, log=None):
         """``Y``: (N, 3, 3) rotations for 'l1_rotation', else (N, D). ``sym_R``: (N, S, 3, 3)
-        symmetry rotations per sample (identity first) for the rotation loss."""
+        symmetry rotations per sample (identity first) for the rotation loss. With a
+        validation set, the weights of the epoch with the lowest validation loss are kept
+        (checked every 5 epochs): the latent codes are few and an MLP overfits them."""
         import time
 
         import torch
@@ -72,6 +74,12 @@ class NumpyMLP(BaseEstimator, RegressorMixin):
         sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, self.epochs)
         g = torch.Generator().manual_seed(self.seed)
         t0 = time.perf_counter()
+        if X_val is not None:
+            Xv = torch.from_numpy((np.asarray(X_val, dtype=np.float32) - self.mean_) / self.scale_)
+            Yv = torch.from_numpy(np.asarray(Y_val, dtype=np.float32))
+            Sv = torch.from_numpy(np.asarray(sym_val, dtype=np.float32)) if sym_val is not None else None
+        best, best_state = np.inf, None
+        self.best_epoch_ = None
         for ep in range(self.epochs):
             perm = torch.randperm(len(Xt), generator=g)
             for i in range(0, len(Xt), self.batch):
@@ -82,10 +90,19 @@ class NumpyMLP(BaseEstimator, RegressorMixin):
                 loss.backward()
                 opt.step()
             sched.step()
+            if X_val is not None and ep % 5 == 4:
+                with torch.no_grad():
+                    v = float(self._loss(torch, net(Xv), Yv, Sv))
+                if v < best:
+                    best, self.best_epoch_ = v, ep
+                    best_state = {k: t.clone() for k, t in net.state_dict().items()}
             if log and ep % 50 == 0:
-                log(f"  {self.loss} epoch {ep}: {loss.item():.4f}")
+                log(f"  {self.loss} epoch {ep}: {loss.item():.4f}" + (f" (validation best {best:.4f})" if best < np.inf else ""))
             if time.perf_counter() - t0 > self.minutes * 60:
                 break
+        if best_state is not None:
+            net.load_state_dict(best_state)
+            self.val_loss_ = best
         lin = [m for m in net if isinstance(m, torch.nn.Linear)]
         self.layers_ = [(m.weight.detach().numpy().T.copy(), m.bias.detach().numpy().copy()) for m in lin]
         return self
@@ -118,11 +135,13 @@ class DistanceKNN(BaseEstimator, RegressorMixin):
 
     def fit(self, X, y):
         self.scaler_ = StandardScaler().fit(np.asarray(X, dtype=np.float64))
-        self.knn_ = KNeighborsRegressor(n_neighbors=self.k, weights="distance").fit(self._prep(X), y)
+        # float32 halves what the bundle stores (the KNN keeps its training set)
+        self.knn_ = KNeighborsRegressor(n_neighbors=self.k, weights="distance", algorithm="brute").fit(
+            self._prep(X).astype(np.float32), np.asarray(y, dtype=np.float32))
         return self
 
     def predict(self, X):
-        return self.knn_.predict(self._prep(X))
+        return self.knn_.predict(self._prep(X).astype(np.float32))
 
 
 class Codebook(BaseEstimator):

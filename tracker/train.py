@@ -79,7 +79,7 @@ def export_encoder(model, size: int, n_cond: int, path: Path, x_check: np.ndarra
 
 def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent: int = 128,
                  minutes: float = 45.0, seed: int = 0, max_images: int | None = None,
-                 models_info_path=None, codebook_per_object: int = 2500, reg_minutes: float = 4.0,
+                 models_info_path=None, codebook_per_object: int = 1500, reg_minutes: float = 4.0,
                  log=print, command: str | None = None) -> dict:
     torch = _torch()
     from .crops import CropSet, build_training_crops
@@ -141,11 +141,14 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
     size_feat = apparent_size(cs.box, K)
 
     log("rotation MLP (6D, L1 on R, symmetry-aware) ...")
-    rot = NumpyMLP(hidden=(256, 256), loss="l1_rotation", epochs=400, minutes=reg_minutes, seed=seed).fit(
-        rotation_inputs(mu[tr], idx[tr], n_obj), cs.R[tr], symR[tr], log=log)
+    rot = NumpyMLP(hidden=(256, 256), loss="l1_rotation", epochs=300, weight_decay=1e-2, minutes=reg_minutes,
+                   seed=seed).fit(rotation_inputs(mu[tr], idx[tr], n_obj), cs.R[tr], symR[tr],
+                                  rotation_inputs(mu[va], idx[va], n_obj), cs.R[va], symR[va], log=log)
+    log(f"rotation MLP: best validation epoch {rot.best_epoch_}")
     log("centre MLP ...")
-    cen = NumpyMLP(hidden=(256,), loss="l1", epochs=300, minutes=reg_minutes / 2, seed=seed).fit(
-        centre_inputs(mu[tr], idx[tr], n_obj, cs.box[tr], K[tr]), offsets[tr], log=log)
+    cen = NumpyMLP(hidden=(256,), loss="l1", epochs=300, weight_decay=1e-2, minutes=reg_minutes / 2, seed=seed).fit(
+        centre_inputs(mu[tr], idx[tr], n_obj, cs.box[tr], K[tr]), offsets[tr], None,
+        centre_inputs(mu[va], idx[va], n_obj, cs.box[va], K[va]), offsets[va], log=log)
     from .geometry import centre_from_box_offset
     cen_va = centre_from_box_offset(cs.box[va], cen.predict(centre_inputs(mu[va], idx[va], n_obj, cs.box[va], K[va])))
     dist, knn_info = choose_knn(distance_inputs(mu[tr], idx[tr], n_obj, cs.box[tr], K[tr]),
