@@ -123,7 +123,6 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
         f"{n_obj} objects, budget {minutes:.0f} min")
     hist = train_autoencoder(model, cs.x[tr], cs.y[tr], c_all[tr], cs.x[va], cs.y[va], c_all[va], work,
                              minutes=minutes, seed=seed, log=log)
-    t_ae = time.perf_counter() - t0
 
     cond = c_all if method == "cvam" else None
     mu = encode_all(model, cs.x, cond)
@@ -208,7 +207,7 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
         "training": {"data": str(data_dir), "synth_images": synth.get("images_written", synth.get("images")),
                      "crops": len(cs), "train": len(tr), "validation": len(va), "ae_parameters": n_params,
                      "ae_epochs": len(hist["epoch"]), "ae_best_val_l2": float(min(hist["val_l2"])),
-                     "ae_minutes": round(t_ae / 60, 1), "total_minutes": round((time.perf_counter() - t0) / 60, 1),
+                     "ae_minutes": round(hist["seconds"][-1] / 60, 1) if hist["seconds"] else 0.0, "total_minutes": round((time.perf_counter() - t0) / 60, 1),
                      "knn": knn_info, "seed": seed, "onnx_max_abs_diff": diff},
         "validation_synthetic": val,
         "command": command or "app.py " + " ".join(sys.argv[1:]),
