@@ -36,22 +36,23 @@ def cmd_demo(args) -> int:
     from .preview import render_gt_overlays
     print("demo: no models/lmo bundle; rendering the ground-truth poses of the LM-O dev scene over its "
           "frames instead", file=sys.stderr)
-    s = render_gt_overlays(lmo_dev_scene(), lmo_models(), out, max_frames=args.max_frames)
+    _print_preview(render_gt_overlays(lmo_dev_scene(), lmo_models(), out, max_frames=args.max_frames))
+    return 0
+
+
+def _print_preview(s) -> None:
     print(f"{s.frames} frames, {s.instances} object instances rendered at their ground-truth poses "
           f"({s.ms_per_frame_render:.0f} ms/frame render)")
     print(f"silhouette vs projected-vertex box IoU over the {s.instances_in_view} instances in view: "
           f"median {s.box_iou_median:.3f}, min {s.box_iou_min:.3f}; "
           f"object centres inside the image: {s.centres_in_image}/{s.instances}")
     print(f"overlays: {s.frames_dir}\nmontage:  {s.montage}")
-    return 0
 
 
 def cmd_preview(args) -> int:
     from .preview import render_gt_overlays
     out = Path(args.out) if args.out else _default_run_dir("preview")
-    s = render_gt_overlays(args.data, args.models, out, max_frames=args.max_frames)
-    print(f"{s.frames} frames, {s.instances} instances; box IoU median {s.box_iou_median:.3f}; "
-          f"montage: {s.montage}")
+    _print_preview(render_gt_overlays(args.data, args.models, out, max_frames=args.max_frames))
     return 0
 
 
