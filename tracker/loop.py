@@ -81,6 +81,8 @@ def run_track(cfg: TrackConfig, log=print) -> dict:
         boxes_of, _ = gt_boxes(src.scene, load_models(est.bundle.root / "meshes", ids), src.ids)
     elif cfg.boxes == "gt":
         raise UserError("--boxes gt needs a BOP scene with scene_gt.json")
+    elif cfg.boxes == "detector" and "detector" not in est.bundle.manifest.get("artefacts", {}):
+        raise UserError(f"--boxes detector: {cfg.model} has no detector yet (issue 6); use a BOP scene with --boxes gt")
     elif "detector" not in est.bundle.manifest.get("artefacts", {}):
         log("warning: this bundle has no detector (issue 6) and the source has no ground truth: "
             "no boxes, so no poses; frames are still logged")
