@@ -256,6 +256,31 @@ def write_results(path, estimates) -> Path:
     return path
 
 
+def csv_rows(f, path, required):
+    """Header check of an open CSV file: ({column: index}, iterator of (line number, row)).
+
+    The iterator skips blank lines and rejects rows with the wrong number of fields; every
+    error names the file and the line.
+    """
+    rows = csv.reader(f)
+    header = next(rows, None)
+    if header is None:
+        raise UserError(f"{path}: empty file (expected header {','.join(required)},...)")
+    header = [h.strip() for h in header]
+    missing = [h for h in required if h not in header]
+    if missing:
+        raise UserError(f"{path}:1: missing column(s) {', '.join(missing)}")
+
+    def body():
+        for line, row in enumerate(rows, start=2):
+            if not row or all(not c.strip() for c in row):
+                continue
+            if len(row) != len(header):
+                raise UserError(f"{path}:{line}: {len(row)} fields, expected {len(header)}")
+            yield line, row
+    return {h: i for i, h in enumerate(header)}, body()
+
+
 def read_results(path, known_obj_ids=None) -> list[Estimate]:
     """Parse a BOP results CSV; every problem is reported with its line number."""
     path = Path(path)
@@ -264,20 +289,8 @@ def read_results(path, known_obj_ids=None) -> list[Estimate]:
     out = []
     times: dict[tuple[int, int], tuple[float, int]] = {}
     with open(path, newline="") as f:
-        rows = csv.reader(f)
-        header = next(rows, None)
-        if header is None:
-            raise UserError(f"{path}: empty file (expected header {','.join(RESULT_HEADER)})")
-        header = [h.strip() for h in header]
-        missing = [h for h in RESULT_HEADER if h not in header]
-        if missing:
-            raise UserError(f"{path}:1: missing column(s) {', '.join(missing)}")
-        col = {h: header.index(h) for h in RESULT_HEADER}
-        for line, row in enumerate(rows, start=2):
-            if not row or all(not c.strip() for c in row):
-                continue
-            if len(row) != len(header):
-                raise UserError(f"{path}:{line}: {len(row)} fields, expected {len(header)}")
+        col, rows = csv_rows(f, path, RESULT_HEADER)
+        for line, row in rows:
             try:
                 scene_id, im_id, obj_id = (int(row[col[k]]) for k in ("scene_id", "im_id", "obj_id"))
                 score = float(row[col["score"]])

@@ -61,7 +61,7 @@ import numpy as np
 from scipy.optimize import least_squares, minimize_scalar
 from scipy.spatial.transform import Rotation, RotationSpline, Slerp
 
-from .bop import read_results
+from .bop import csv_rows, read_results
 from .errors import UserError
 from .geometry import quat_from_matrix, rotation_error_deg
 
@@ -297,20 +297,9 @@ def read_timings(path) -> dict[int, float]:
     out: dict[int, float] = {}
     first_line: dict[int, int] = {}
     with open(path, newline="") as f:
-        rows = csv.reader(f)
-        header = next(rows, None)
-        if header is None:
-            raise UserError(f"{path}: empty file (expected header im_id,t_capture,...)")
-        header = [h.strip() for h in header]
-        missing = [c for c in ("im_id", "t_capture") if c not in header]
-        if missing:
-            raise UserError(f"{path}:1: missing column(s) {', '.join(missing)}")
-        ci, ct = header.index("im_id"), header.index("t_capture")
-        for line, row in enumerate(rows, start=2):
-            if not row or all(not c.strip() for c in row):
-                continue
-            if len(row) != len(header):
-                raise UserError(f"{path}:{line}: {len(row)} fields, expected {len(header)}")
+        col, rows = csv_rows(f, path, ("im_id", "t_capture"))
+        ci, ct = col["im_id"], col["t_capture"]
+        for line, row in rows:
             try:
                 im_id, tc = int(row[ci]), float(row[ct])
             except ValueError as e:
