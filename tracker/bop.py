@@ -18,6 +18,7 @@ from .errors import UserError
 from .geometry import is_rotation
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg")
+SCENE_VIDEOS = ("rgb.avi", "rgb.mp4", "rgb.mkv")  # a scene's frames as one video, im_ids in order
 
 
 # --------------------------------------------------------------------------- JSON helpers
@@ -124,14 +125,37 @@ def save_scene_gt_info(path, gt: dict[int, list[GtInstance]]) -> Path:
 # --------------------------------------------------------------------------- scenes
 
 
+class VideoFrames:
+    """Random access to the frames of a video file (sequential reads are cheap; a jump seeks)."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.cap = cv2.VideoCapture(str(path))
+        if not self.cap.isOpened():
+            raise UserError(f"{path}: cannot open the video (corrupt, or a codec OpenCV lacks)")
+        self.count = int(self.cap.get(cv2.CAP_PROP_FRAME_COUNT))
+        self.next = 0
+
+    def read(self, index: int) -> np.ndarray:
+        if index != self.next:
+            self.cap.set(cv2.CAP_PROP_POS_FRAMES, index)
+        ok, bgr = self.cap.read()
+        if not ok:
+            raise UserError(f"{self.path}: frame {index} is missing (truncated video?)")
+        self.next = index + 1
+        return bgr
+
+
 @dataclass
 class Scene:
-    """A BOP scene folder: ``rgb/``, ``scene_camera.json`` and, when present, ground truth."""
+    """A BOP scene folder: ``rgb/`` (or the frames as one video, ``rgb.avi``, in im_id order),
+    ``scene_camera.json`` and, when present, ground truth."""
 
     root: Path
     cameras: dict[int, dict]
     gt: dict[int, list[GtInstance]] | None
-    images: dict[int, Path]
+    images: dict[int, Path | int]  # image file, or frame index in ``video``
+    video: VideoFrames | None = None
 
     @property
     def im_ids(self) -> list[int]:
@@ -143,10 +167,22 @@ class Scene:
     def read_rgb(self, im_id: int) -> np.ndarray:
         """The image as RGB uint8."""
         p = self.images[im_id]
-        bgr = cv2.imread(str(p), cv2.IMREAD_COLOR)
-        if bgr is None:
-            raise UserError(f"unreadable image: {p}")
+        if self.video is not None:
+            bgr = self.video.read(p)
+        else:
+            bgr = cv2.imread(str(p), cv2.IMREAD_COLOR)
+            if bgr is None:
+                raise UserError(f"unreadable image: {p}")
         return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+    def image_size(self, im_id: int) -> tuple[int, int]:
+        """(width, height) of an image."""
+        if self.video is None:
+            im = cv2.imread(str(self.images[im_id]), cv2.IMREAD_UNCHANGED)
+            if im is None:
+                raise UserError(f"unreadable image: {self.images[im_id]}")
+            return im.shape[1], im.shape[0]
+        return self.read_rgb(im_id).shape[1::-1]
 
     @property
     def has_gt_info(self) -> bool:
@@ -158,15 +194,23 @@ def load_scene(root, require_gt: bool = False) -> Scene:
     if not root.is_dir():
         raise UserError(f"BOP scene folder not found: {root}")
     rgb = root / "rgb"
-    if not rgb.is_dir():
-        raise UserError(f"{root}: not a BOP scene (no rgb/ folder)")
+    videos = [root / v for v in SCENE_VIDEOS if (root / v).is_file()]
+    if not rgb.is_dir() and not videos:
+        raise UserError(f"{root}: not a BOP scene (no rgb/ folder or {SCENE_VIDEOS[0]})")
     cameras = load_scene_camera(root / "scene_camera.json")
-    images = {}
-    for p in sorted(rgb.iterdir()):
-        if p.suffix.lower() in IMAGE_EXTS and p.stem.isdigit():
-            images[int(p.stem)] = p
-    if not images:
-        raise UserError(f"{rgb}: no NNNNNN.png / .jpg images")
+    images, video = {}, None
+    if rgb.is_dir():
+        for p in sorted(rgb.iterdir()):
+            if p.suffix.lower() in IMAGE_EXTS and p.stem.isdigit():
+                images[int(p.stem)] = p
+        if not images:
+            raise UserError(f"{rgb}: no NNNNNN.png / .jpg images")
+    else:
+        video = VideoFrames(videos[0])
+        if video.count < len(cameras):
+            raise UserError(f"{videos[0]}: {video.count} frames, scene_camera.json lists {len(cameras)} images "
+                            f"(truncated video?)")
+        images = {im_id: k for k, im_id in enumerate(sorted(cameras))}
     missing = sorted(set(images) - set(cameras))
     if missing:
         raise UserError(f"{root}/scene_camera.json has no camera for image(s) {missing[:5]}")
@@ -176,7 +220,7 @@ def load_scene(root, require_gt: bool = False) -> Scene:
         gt = load_scene_gt(gt_path, root / "scene_gt_info.json")
     elif require_gt:
         raise UserError(f"{root}: missing scene_gt.json (ground truth is needed here)")
-    return Scene(root, cameras, gt, images)
+    return Scene(root, cameras, gt, images, video)
 
 
 # --------------------------------------------------------------------------- models_info

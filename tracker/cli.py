@@ -20,24 +20,24 @@ def _default_run_dir(name: str) -> Path:
 
 
 def cmd_demo(args) -> int:
-    """The LM-O dev frames through the full pipeline with the bundled models/lmo (ground-truth
-    boxes until the detector lands); without a bundle, the ground-truth overlay."""
-    from .paths import REPO, lmo_dev_scene, lmo_models
+    """The bundled recording (demo/lmo_dev: the LM-O dev frames as a video, with their ground
+    truth) through the full pipeline with models/lmo: detector -> crops -> encoder ->
+    regressors -> overlay -> rerun; accuracy against the recording's ground truth."""
+    from .bundle import open_bundle
+    from .loop import TrackConfig, run_track
+    from .paths import DEMO_RECORDING, REPO
     out = Path(args.out) if args.out else _default_run_dir("demo")
     bundle = REPO / "models" / "lmo"
-    if (bundle / "manifest.json").is_file():
-        from .loop import TrackConfig, run_track
-        print("demo: LM-O dev frames -> ground-truth boxes (no detector yet, issue 6) -> models/lmo -> "
-              "poses, overlay, rerun", file=sys.stderr)
-        s = run_track(TrackConfig(str(lmo_dev_scene()), str(bundle), out, rerun="save", max_frames=args.max_frames),
-                      log=lambda m: print(m, file=sys.stderr))
-        _print_run(s, out)
-        return 130 if s["interrupted"] else 0
-    from .preview import render_gt_overlays
-    print("demo: no models/lmo bundle; rendering the ground-truth poses of the LM-O dev scene over its "
-          "frames instead", file=sys.stderr)
-    _print_preview(render_gt_overlays(lmo_dev_scene(), lmo_models(), out, max_frames=args.max_frames))
-    return 0
+    if not (DEMO_RECORDING / "rgb.avi").is_file():
+        raise UserError(f"the bundled recording {DEMO_RECORDING} is missing; restore it with git checkout")
+    boxes = "detector" if "detector" in open_bundle(bundle).manifest.get("artefacts", {}) else "gt"
+    print(f"demo: {DEMO_RECORDING.relative_to(REPO)} (LM-O dev frames) -> "
+          f"{'detector' if boxes == 'detector' else 'ground-truth boxes (no detector in the bundle)'} -> "
+          f"models/lmo -> poses, overlay, rerun", file=sys.stderr)
+    s = run_track(TrackConfig(str(DEMO_RECORDING), str(bundle), out, rerun="save", max_frames=args.max_frames,
+                              boxes=boxes), log=lambda m: print(m, file=sys.stderr))
+    _print_run(s, out)
+    return 130 if s["interrupted"] else 0
 
 
 def _print_preview(s) -> None:
@@ -127,6 +127,24 @@ def cmd_train(args) -> int:
     return 0
 
 
+def cmd_train_detector(args) -> int:
+    from .detector_train import train_detector
+    d = train_detector(args.data, args.model, minutes=args.minutes, width=args.width, input_w=args.input[0],
+                       input_h=args.input[1], batch=args.batch, seed=args.seed, max_images=args.max_images,
+                       command="app.py " + " ".join(sys.argv[1:]))
+    v = d["training"]["validation_synthetic"]
+    print(f"detector added to {args.model}: synthetic validation AP {v['ap']:.3f}, AP50 {v['ap50']:.3f}")
+    return 0
+
+
+def cmd_pack_scene(args) -> int:
+    from .recording import write_scene_video
+    r = write_scene_video(args.data, args.out, quality=args.quality, fps=args.fps)
+    print(f"wrote {r['video']}: {r['frames']} frames, {r['bytes'] / 1e6:.1f} MB, "
+          f"PSNR vs the originals min {r['psnr_min']:.1f} dB, median {r['psnr_median']:.1f} dB")
+    return 0
+
+
 def cmd_eval(args) -> int:
     from .evaluate import evaluate
     m = evaluate(args.model, args.data, args.json, boxes=args.boxes, mode=args.mode, bop_csv=args.bop_csv,
@@ -141,6 +159,14 @@ def cmd_eval(args) -> int:
         print(f"{k:>5} {v['add_recall']:7.3f} {v['ar_mssd']:6.3f} {v['ar_mspd']:6.3f} "
               f"{v['re_median_deg'] if v['re_median_deg'] is not None else float('nan'):6.1f} "
               f"{v['te_median_mm'] if v['te_median_mm'] is not None else float('nan'):7.1f}")
+    d = m.get("detection")
+    if d:
+        print(f"detector: AP {d['ap']:.3f}, AP50 {d['ap50']:.3f}, recall50 {d['recall50']:.3f}, "
+              f"{d['ms_per_image_median']:.1f} ms/image (median)")
+        print(f"{'obj':>5} {'AP':>6} {'AP50':>6} {'R50':>6}")
+        for k, v in sorted(d["per_object"].items(), key=lambda kv: int(kv[0])):
+            if v["n_gt"]:
+                print(f"{k:>5} {v['ap']:6.3f} {v['ap50']:6.3f} {v['recall50']:6.3f}")
     print(f"visibility: {m['visibility_source']}\nwrote {args.json} and {m['bop_csv']}")
     return 0
 
@@ -181,7 +207,7 @@ def cmd_track(args) -> int:
     from .loop import TrackConfig, run_track
     out = Path(args.out) if args.out else _default_run_dir("track")
     cfg = TrackConfig(args.source, args.model, out, args.calib, args.rerun, args.max_frames, args.realtime,
-                      not args.no_overlay, args.boxes)
+                      not args.no_overlay, args.boxes, detect_every=args.detect_every, smooth=args.smooth)
     s = run_track(cfg, log=lambda m: print(m, file=sys.stderr))
     _print_run(s, out)
     return 130 if s["interrupted"] else 0
@@ -244,6 +270,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--max-frames", type=int)
     s.add_argument("--realtime", action="store_true", help="play recordings at their recorded rate")
     s.add_argument("--no-overlay", action="store_true", help="skip rendering the overlay")
+    s.add_argument("--detect-every", type=int, default=1, metavar="N",
+                   help="run the detector every N frames (and whenever an object is lost); in between, "
+                        "boxes come from the previous poses")
+    s.add_argument("--smooth", type=float, default=None, metavar="ALPHA",
+                   help="temporal smoothing on SO(3) x R^3, 0 < ALPHA <= 1 (smaller = smoother); off by default")
     s.add_argument("--boxes", choices=["auto", "gt", "detector"], default="auto",
                    help="auto: ground truth on BOP scenes that have it, else the bundle's detector")
     s.set_defaults(func=cmd_track)
@@ -291,6 +322,24 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--max-images", type=int, help="use only the first N scene images")
     s.add_argument("--models-info", help="models_info.json (default: computed from the meshes)")
     s.set_defaults(func=cmd_train)
+
+    s = sub.add_parser("train-detector", help="train the 2D detector on synth scenes and add it to a bundle")
+    s.add_argument("--data", required=True, help="a 'synth' split")
+    s.add_argument("--model", required=True, help="the bundle that gets detector.onnx")
+    s.add_argument("--minutes", type=float, default=60.0, help="training time budget (cosine schedule over it)")
+    s.add_argument("--width", type=int, default=32, help="base channel width of the network")
+    s.add_argument("--input", type=int, nargs=2, default=(320, 240), metavar=("W", "H"), help="network input size")
+    s.add_argument("--batch", type=int, default=32)
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--max-images", type=int, default=None, help="use only the first N images")
+    s.set_defaults(func=cmd_train_detector)
+
+    s = sub.add_parser("pack-scene", help="a BOP scene as a recording: frames in one MJPEG video + its JSON files")
+    s.add_argument("--data", required=True, help="BOP scene folder")
+    s.add_argument("--out", required=True, help="recording folder (rgb.avi, scene_camera.json, scene_gt.json)")
+    s.add_argument("--quality", type=int, default=95, help="JPEG quality of the frames")
+    s.add_argument("--fps", type=float, default=10.0, help="frame rate written into the video")
+    s.set_defaults(func=cmd_pack_scene)
 
     s = sub.add_parser("eval", help="run a bundle on a BOP scene and score it")
     s.add_argument("--model", required=True, help="model bundle folder")

@@ -32,9 +32,13 @@ def evaluate(model_dir, scene_dir, json_path=None, boxes: str = "gt", mode: str 
              bop_csv=None, max_frames: int | None = None, progress: bool = True) -> dict:
     from .meshes import load_models
     from .scoring import score_results, write_metrics_json
-    if boxes != "gt":
-        raise UserError("--boxes detector needs a bundle with a detector (issue 6 has not landed); use --boxes gt")
+    if boxes not in ("gt", "detector"):
+        raise UserError(f"--boxes must be gt or detector, not '{boxes}'")
     est = PoseEstimator(model_dir)
+    detector = None
+    if boxes == "detector":
+        from .detector import Detector
+        detector = Detector(est.bundle, threads=2)
     scene = load_scene(scene_dir, require_gt=True)
     im_ids = sorted(scene.gt)[:max_frames] if max_frames else sorted(scene.gt)
     mesh_dir = Path(model_dir) / "meshes"
@@ -45,11 +49,17 @@ def evaluate(model_dir, scene_dir, json_path=None, boxes: str = "gt", mode: str 
     models = load_models(mesh_dir, gt_ids)
     box_of, _ = gt_boxes(scene, models, im_ids)
     results = []
+    all_dets, det_ms = [], []
     t_all = 0.0
-    for im_id in tqdm(im_ids, desc=f"eval ({mode})", unit="img", disable=not progress):
+    for im_id in tqdm(im_ids, desc=f"eval ({mode}, {boxes} boxes)", unit="img", disable=not progress):
         img = scene.read_rgb(im_id)
-        dets = [Detection(g.obj_id, b) for g, (b, v) in zip(scene.gt[im_id], box_of[im_id]) if b[2] > 1 and b[3] > 1]
         t0 = time.perf_counter()
+        if detector is not None:
+            dets = detector(img)
+            det_ms.append(1000 * (time.perf_counter() - t0))
+            all_dets.append(dets)
+        else:
+            dets = [Detection(g.obj_id, b) for g, (b, v) in zip(scene.gt[im_id], box_of[im_id]) if b[2] > 1 and b[3] > 1]
         poses = est.estimate(img, scene.K(im_id), dets, mode=mode)
         dt = time.perf_counter() - t0
         t_all += dt
@@ -61,6 +71,13 @@ def evaluate(model_dir, scene_dir, json_path=None, boxes: str = "gt", mode: str 
     write_results(bop_csv, results)
     m = score_results(bop_csv, scene_dir, mesh_dir, models_info=mesh_dir / "models_info.json", im_ids=im_ids,
                       scene_id=0, ms_per_image=1000 * t_all / len(im_ids))
+    if detector is not None:
+        from .detection_metrics import detection_ap
+        gts = [[(g.obj_id, b) for g, (b, v) in zip(scene.gt[i], box_of[i]) if v >= 0.1 and b[2] > 1] for i in im_ids]
+        ign = [[(g.obj_id, b) for g, (b, v) in zip(scene.gt[i], box_of[i]) if v < 0.1 and b[2] > 1] for i in im_ids]
+        m["detection"] = detection_ap(all_dets, gts, est.obj_ids, ignore=ign)
+        m["detection"]["ms_per_image_median"] = float(np.median(det_ms))
+        m["detection"]["visibility_source"] = m.get("visibility_source")
     m.update({"boxes": boxes, "mode": mode, "model": str(model_dir), "data": str(scene_dir),
               "bop_csv": str(bop_csv), "method": name})
     if json_path:

@@ -34,6 +34,11 @@ class TrackConfig:
     # the overlay is rendered at 1/overlay_downscale of the frame size and scaled up: on the
     # CPU rasteriser the full-size render of 8 objects cost ~110 ms of a ~150 ms frame
     overlay_downscale: int = 2
+    # detector on every Nth frame; in between (and while every object is still found) boxes
+    # come from the previous frame's poses projected into the frame
+    detect_every: int = 1
+    detector_threads: int = 2
+    smooth: float | None = None  # PoseSmoother alpha (None: off)
 
 
 class _Stopper:
@@ -64,6 +69,40 @@ def _gt_detections(frame, boxes_of, known) -> list[Detection]:
     return []
 
 
+class BoxSchedule:
+    """Which boxes a frame uses: the detector's, or (when ``every`` > 1) boxes predicted from
+    the previous frame's poses, the model points projected at that pose. The detector runs on
+    every ``every``-th frame and on any frame after one where an object was lost."""
+
+    def __init__(self, detector, every: int, points: dict[int, np.ndarray]):
+        self.detector, self.every, self.points = detector, max(1, int(every)), points
+        self.since = 0
+        self.prev: list = []
+        self.lost = True
+        self.detector_frames = 0
+
+    def boxes(self, rgb, K) -> tuple[list[Detection], str]:
+        from .geometry import box_from_points, clip_box, project
+        h, w = rgb.shape[:2]
+        if self.lost or self.since + 1 >= self.every or not self.prev:
+            self.since = 0
+            self.detector_frames += 1
+            dets = self.detector(rgb)
+            self.n_expected = len(dets)
+            return dets, "detector"
+        self.since += 1
+        out = []
+        for p in self.prev:
+            b = clip_box(box_from_points(project(self.points[p.obj_id], K, p.R, p.t)), w, h)
+            if b[2] > 4 and b[3] > 4:
+                out.append(Detection(p.obj_id, b, p.score))
+        return out, "pose"
+
+    def update(self, poses):
+        self.lost = len(poses) < getattr(self, "n_expected", 0)
+        self.prev = poses
+
+
 def run_track(cfg: TrackConfig, log=print) -> dict:
     from .meshes import load_mesh
     from .overlay import blend, colour, draw_axes, draw_box
@@ -82,11 +121,21 @@ def run_track(cfg: TrackConfig, log=print) -> dict:
     elif cfg.boxes == "gt":
         raise UserError("--boxes gt needs a BOP scene with scene_gt.json")
     elif cfg.boxes == "detector" and "detector" not in est.bundle.manifest.get("artefacts", {}):
-        raise UserError(f"--boxes detector: {cfg.model} has no detector yet (issue 6); use a BOP scene with --boxes gt")
+        raise UserError(f"--boxes detector: {cfg.model} has no detector; train one with 'app.py train-detector' "
+                        f"or use a BOP scene with --boxes gt")
     elif "detector" not in est.bundle.manifest.get("artefacts", {}):
-        log("warning: this bundle has no detector (issue 6) and the source has no ground truth: "
+        log("warning: this bundle has no detector and the source has no ground truth: "
             "no boxes, so no poses; frames are still logged")
     meshes = {o["id"]: load_mesh(est.bundle.root / o["mesh"], o["id"]).mesh for o in est.bundle.objects}
+    schedule = None
+    if boxes_of is None and "detector" in est.bundle.manifest.get("artefacts", {}):
+        from .detector import Detector
+        pts = {o: np.asarray(m.vertices)[:: max(1, len(m.vertices) // 500)] for o, m in meshes.items()}
+        schedule = BoxSchedule(Detector(est.bundle, threads=cfg.detector_threads), cfg.detect_every, pts)
+    smoother = None
+    if cfg.smooth is not None:
+        from .smoothing import PoseSmoother
+        smoother = PoseSmoother(cfg.smooth)
     diam = {o["id"]: o["diameter"] for o in est.bundle.objects}
     cam = read_camera(cfg.calib) if cfg.calib else None
     undist = Undistorter(cam) if cam else None
@@ -120,10 +169,18 @@ def run_track(cfg: TrackConfig, log=print) -> dict:
                     raise UserError("this source needs a camera file: pass --calib FILE")
                 ms["undistort"] = 1000 * (time.perf_counter() - t)
                 t = time.perf_counter()
-                dets = _gt_detections(frame, boxes_of, set(est.obj_ids))
+                if schedule is not None:
+                    dets, _ = schedule.boxes(rgb, K)
+                else:
+                    dets = _gt_detections(frame, boxes_of, set(est.obj_ids))
                 ms["detect"] = 1000 * (time.perf_counter() - t)
                 t = time.perf_counter()
                 poses = est.estimate(rgb, K, dets, timings=ms) if dets else []
+                if schedule is not None:
+                    schedule.update(poses)
+                if smoother is not None:
+                    for p in poses:
+                        p.R, p.t = smoother(p.obj_id, p.R, p.t, n)
                 ms.setdefault("encode", 0.0)  # crops + encoder
                 ms.setdefault("regress", 0.0)
                 t = time.perf_counter()
@@ -181,12 +238,14 @@ def run_track(cfg: TrackConfig, log=print) -> dict:
                           "p95": float(np.percentile(v, 95)) if v else None} for k, v in stage_log.items()},
         "dropped_frames": int(getattr(src, "dropped", 0)), "pose_prior": prior, "poses_outside_prior": out_of_prior, "interrupted": interrupted,
         "camera_lost": bool(getattr(src, "lost", False)), "video_truncated": bool(getattr(src, "truncated", False)),
-        "source": str(cfg.source), "model": str(cfg.model), "boxes": "gt" if boxes_of is not None else "none",
+        "source": str(cfg.source), "model": str(cfg.model), "boxes": "gt" if boxes_of is not None else ("detector" if schedule is not None else "none"),
+        "detector_frames": schedule.detector_frames if schedule is not None else None,
+        "detect_every": cfg.detect_every, "smoothing_alpha": cfg.smooth,
         "recording": str(rr_sink.path) if rr_sink is not None and rr_sink.path else None,
     }
-    gt_objs = {g.obj_id for i in getattr(src, "ids", [])[:n] for g in (src.scene.gt or {}).get(i, [])} \
-        if boxes_of is not None else set()
-    if boxes_of is not None and n and gt_objs <= set(est.obj_ids):
+    has_gt = isinstance(src, BopSceneSource) and bool(src.scene.gt)
+    gt_objs = {g.obj_id for i in src.ids[:n] for g in src.scene.gt.get(i, [])} if has_gt else set()
+    if has_gt and n and gt_objs <= set(est.obj_ids):
         from .scoring import score_results
         m = score_results(out / "poses.csv", src.scene.root, est.bundle.root / "meshes",
                           models_info=est.bundle.root / "meshes" / "models_info.json",

@@ -15,6 +15,9 @@ def shared_data() -> Path:
     return Path(env) if env else REPO.parent / "shared" / "data"
 
 
+DEMO_RECORDING = REPO / "demo" / "lmo_dev"
+
+
 def lmo_dev_scene() -> Path:
     return _must_exist(shared_data() / "lmo" / "dev")
 

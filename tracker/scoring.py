@@ -35,7 +35,6 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -352,14 +351,6 @@ def _by_visibility(records: list[_GtRecord]) -> list[dict]:
 # --------------------------------------------------------------------------- files
 
 
-def _image_size(scene: Scene, im_id: int) -> tuple[int, int]:
-    p = scene.images[im_id]
-    im = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
-    if im is None:
-        raise UserError(f"unreadable image: {p}")
-    return im.shape[1], im.shape[0]
-
-
 def _pick_scene_id(estimates: list[Estimate], scene: Scene, scene_id: int | None) -> int | None:
     if scene_id is not None:
         return int(scene_id)
@@ -423,7 +414,7 @@ def score_results(results_csv, scene_dir, models_dir, models_info=None, im_ids=N
     models = load_models(models_dir, need)
     objects = {k: ObjectEval.from_info(k, models[k].vertices, info[k]) for k in need}
 
-    width, height = _image_size(scene, im_ids[0])
+    width, height = scene.image_size(im_ids[0])
     visib, source = gt_visibility(scene, models, im_ids, width, height)
 
     if ms_per_image is None:

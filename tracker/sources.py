@@ -11,7 +11,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .bop import IMAGE_EXTS, GtInstance, load_scene
+from .bop import IMAGE_EXTS, SCENE_VIDEOS, GtInstance, load_scene
 from .errors import UserError
 
 
@@ -44,6 +44,8 @@ class BopSceneSource(Source):
         self.ids = self.scene.im_ids[:max_frames] if max_frames else self.scene.im_ids
         self.realtime = realtime
         self.fps = 30.0
+        if self.scene.video is not None:
+            self.fps = float(self.scene.video.cap.get(cv2.CAP_PROP_FPS)) or 30.0
 
     def __iter__(self):
         t0 = time.monotonic()
@@ -189,7 +191,7 @@ def open_source(src: str, max_frames=None, realtime=False, width=None, height=No
         return CameraSource(int(s) if s.isdigit() else s, width, height, fps, max_frames)
     p = Path(s)
     if p.is_dir():
-        if (p / "rgb").is_dir() and (p / "scene_camera.json").is_file():
+        if (p / "scene_camera.json").is_file() and ((p / "rgb").is_dir() or any((p / v).is_file() for v in SCENE_VIDEOS)):
             return BopSceneSource(p, max_frames, realtime)
         return ImageFolderSource(p, max_frames, realtime)
     if p.is_file():

@@ -1,0 +1,264 @@
+"""``app.py train-detector``: train the CenterNet-style detector on ``synth`` scenes (torch,
+CPU), export it to ONNX and add it to a model bundle (manifest re-hashed).
+
+Images are letterboxed to the detector's input size once and cached (uint8) in
+``<bundle>.work/``; every batch then gets a random zoom/shift (boxes follow exactly: no
+rotation), colour, blur and noise augmentation. The learning rate follows a cosine over the
+time budget; a checkpoint is written every few minutes and training resumes from it.
+"""
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from .bop import load_scene
+from .crops import split_scene_dirs
+from .detector import DetectorSpec, decode, letterbox, normalise
+from .errors import UserError
+
+MIN_VISIB = 0.1
+
+
+def load_detection_set(split_dir, spec: DetectorSpec, cache: Path | None = None, max_images=None, log=print):
+    """Letterboxed images (N, H, W, 3) uint8 and per image an (n, 5) array [class, x, y, w, h]
+    of visible boxes (visib >= 0.1) in network-input pixels."""
+    if cache is not None and cache.is_file():
+        z = np.load(cache, allow_pickle=False)
+        boxes = np.split(z["boxes"], np.cumsum(z["counts"])[:-1])
+        log(f"loaded {len(z['images'])} images from {cache}")
+        return z["images"], boxes
+    lut = {c: i for i, c in enumerate(spec.classes)}
+    imgs, boxes = [], []
+    scenes = split_scene_dirs(split_dir)
+    total = sum(len(json.loads((s / "scene_camera.json").read_text())) for s in scenes)
+    total = min(total, max_images or total)
+    for sdir in scenes:
+        scene = load_scene(sdir, require_gt=True)
+        for im_id in tqdm(scene.im_ids, desc=f"images {sdir.name}", unit="img", leave=False):
+            if len(imgs) >= total:
+                break
+            img, lb = letterbox(scene.read_rgb(im_id), spec.input_w, spec.input_h, spec.pad_value)
+            b = [[lut[g.obj_id], *g.info["bbox_visib"]] for g in scene.gt[im_id]
+                 if g.obj_id in lut and g.info.get("visib_fract", 0) >= MIN_VISIB and g.info["bbox_visib"][2] > 1]
+            b = np.array(b, np.float32).reshape(-1, 5)
+            b[:, 1:] = lb.to_input(b[:, 1:])
+            imgs.append(img)
+            boxes.append(b)
+    if not imgs:
+        raise UserError(f"{split_dir}: no images")
+    images = np.stack(imgs)
+    if cache is not None:
+        np.savez(cache, images=images, boxes=np.concatenate(boxes), counts=np.array([len(b) for b in boxes]))
+    return images, boxes
+
+
+def draw_targets(boxes_list, n_classes: int, out_w: int, out_h: int, stride: int):
+    """CenterNet targets at ``stride``: Gaussian centre heatmaps (elliptical, sigma = 0.54 x
+    box size / 6, as TTFNet), and at each centre cell log size and sub-cell offset."""
+    B = len(boxes_list)
+    hm = np.zeros((B, n_classes, out_h, out_w), np.float32)
+    reg = np.zeros((B, 4, out_h, out_w), np.float32)
+    mask = np.zeros((B, 1, out_h, out_w), np.float32)
+    ys, xs = np.mgrid[0:out_h, 0:out_w].astype(np.float32)
+    for i, boxes in enumerate(boxes_list):
+        for c, x, y, w, h in boxes:
+            cx, cy = (x + w / 2) / stride, (y + h / 2) / stride
+            ix, iy = int(cx), int(cy)
+            if not (0 <= ix < out_w and 0 <= iy < out_h) or w < 2 or h < 2:
+                continue
+            sx, sy = max(0.54 * w / 6 / stride, 0.5), max(0.54 * h / 6 / stride, 0.5)
+            g = np.exp(-((xs - ix) ** 2 / (2 * sx * sx) + (ys - iy) ** 2 / (2 * sy * sy)))
+            hm[i, int(c)] = np.maximum(hm[i, int(c)], g)
+            hm[i, int(c), iy, ix] = 1.0
+            reg[i, :, iy, ix] = (math.log(w / stride), math.log(h / stride), cx - ix, cy - iy)
+            mask[i, 0, iy, ix] = 1.0
+    return hm, reg, mask
+
+
+def augment_batch(x, boxes_list, rng: np.random.Generator, torch):
+    """Random zoom (0.6-1.6, log-uniform) and shift on the whole batch item (boxes follow),
+    then colour (brightness, contrast, saturation, per-channel gain), blur and noise.
+    ``x``: (B, 3, H, W) float in [0, 1]."""
+    from torch.nn import functional as F
+    B, _, H, W = x.shape
+    s = np.exp(rng.uniform(np.log(0.6), np.log(1.6), B))
+    tx = rng.uniform(-0.3, 0.3, B) * W
+    ty = rng.uniform(-0.3, 0.3, B) * H
+    theta = np.zeros((B, 2, 3), np.float32)  # output -> input, normalised coordinates
+    theta[:, 0, 0] = 1 / s
+    theta[:, 1, 1] = 1 / s
+    # a pixel u_in maps to u_out = s * (u_in - c) + c + t  (c = image centre)
+    theta[:, 0, 2] = -tx / s / (W / 2)
+    theta[:, 1, 2] = -ty / s / (H / 2)
+    grid = F.affine_grid(torch.from_numpy(theta), list(x.shape), align_corners=False)
+    x = F.grid_sample(x - 0.45, grid, mode="bilinear", padding_mode="zeros", align_corners=False) + 0.45
+    out_boxes = []
+    for i, b in enumerate(boxes_list):
+        b = b.copy()
+        x0 = s[i] * (b[:, 1] - W / 2) + W / 2 + tx[i]
+        y0 = s[i] * (b[:, 2] - H / 2) + H / 2 + ty[i]
+        x1, y1 = x0 + s[i] * b[:, 3], y0 + s[i] * b[:, 4]
+        cx0, cy0, cx1, cy1 = np.clip(x0, 0, W), np.clip(y0, 0, H), np.clip(x1, 0, W), np.clip(y1, 0, H)
+        area = np.maximum(cx1 - cx0, 0) * np.maximum(cy1 - cy0, 0)
+        keep = area >= 0.35 * np.maximum((x1 - x0) * (y1 - y0), 1e-6)
+        b[:, 1:] = np.stack([cx0, cy0, cx1 - cx0, cy1 - cy0], 1)
+        out_boxes.append(b[keep])
+    g = torch.from_numpy(rng.uniform(0.5, 1.5, (B, 1, 1, 1)).astype(np.float32))
+    x = x * g                                                   # brightness
+    m = x.mean(dim=(1, 2, 3), keepdim=True)
+    x = (x - m) * torch.from_numpy(rng.uniform(0.6, 1.4, (B, 1, 1, 1)).astype(np.float32)) + m  # contrast
+    grey = x.mean(dim=1, keepdim=True)
+    x = (x - grey) * torch.from_numpy(rng.uniform(0.5, 1.5, (B, 1, 1, 1)).astype(np.float32)) + grey  # saturation
+    x = x * torch.from_numpy(rng.uniform(0.85, 1.15, (B, 3, 1, 1)).astype(np.float32))  # white balance
+    blur = rng.random(B) < 0.3
+    if blur.any():
+        k = torch.tensor([1, 4, 6, 4, 1], dtype=torch.float32)
+        k = (k[:, None] * k[None]) / 256
+        idx = torch.from_numpy(np.nonzero(blur)[0])
+        xb = F.conv2d(F.pad(x[idx], (2, 2, 2, 2), mode="replicate"), k[None, None].repeat(3, 1, 1, 1), groups=3)
+        x = x.clone()
+        x[idx] = xb
+    x = x + torch.randn_like(x) * torch.from_numpy(rng.uniform(0, 0.04, (B, 1, 1, 1)).astype(np.float32))
+    return x.clamp(0, 1), out_boxes
+
+
+def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32, input_w: int = 320,
+                   input_h: int = 240, batch: int = 32, lr: float = 2e-3, seed: int = 0, max_images=None,
+                   val_fraction: float = 0.05, threads: int = 2, log=print, command: str | None = None) -> dict:
+    try:
+        import torch
+    except ImportError:
+        raise UserError("training needs the extras: pip install -e '.[train]'") from None
+    from .bundle import open_bundle, write_manifest
+    from .detection_metrics import detection_ap
+    from .nets.detector import CenterNetLite, focal_loss
+    bundle = open_bundle(bundle_dir)  # verified before anything is changed
+    torch.set_num_threads(threads)
+    torch.manual_seed(seed)
+    spec = DetectorSpec(classes=[int(o["id"]) for o in bundle.objects], input_w=input_w, input_h=input_h)
+    root = Path(bundle_dir)
+    work = root.parent / (root.name + ".work")
+    work.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    images, boxes = load_detection_set(data_dir, spec, work / f"det_{input_w}x{input_h}_{max_images or 'all'}.npz",
+                                       max_images, log)
+    n = len(images)
+    rng = np.random.default_rng(seed)
+    perm = rng.permutation(n)
+    n_va = max(1, int(n * val_fraction))
+    va, tr = np.sort(perm[:n_va]), perm[n_va:]
+    C, S = len(spec.classes), spec.stride
+    oh, ow = math.ceil(input_h / S), math.ceil(input_w / S)
+    model = CenterNetLite(C, width)
+    n_params = sum(p.numel() for p in model.parameters())
+    opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
+    ckpt = work / "detector_ckpt.pt"
+    state = {"step": 0, "seconds": 0.0, "history": []}
+    if ckpt.is_file():
+        z = torch.load(ckpt, weights_only=False)
+        if z.get("width") == width and z.get("classes") == spec.classes:
+            model.load_state_dict(z["model"])
+            opt.load_state_dict(z["opt"])
+            state = z["state"]
+            log(f"resumed from {ckpt}: step {state['step']}, {state['seconds'] / 60:.1f} min done")
+    budget = 60.0 * minutes
+    log(f"detector: {n_params / 1e6:.2f} M parameters, {len(tr)} train / {len(va)} validation images, "
+        f"{input_w}x{input_h} input, budget {minutes:.0f} min")
+    bar = tqdm(total=int(budget), initial=int(min(state["seconds"], budget)), unit="s", desc="detector")
+    last_ckpt = time.perf_counter()
+    run_start = time.perf_counter() - state["seconds"]
+    losses = []
+
+    def save():
+        torch.save({"model": model.state_dict(), "opt": opt.state_dict(), "state": state, "width": width,
+                    "classes": spec.classes}, ckpt)
+
+    try:
+        model.train()
+        while state["seconds"] < budget:
+            frac = state["seconds"] / budget
+            for gr in opt.param_groups:
+                gr["lr"] = lr * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * frac))) * min(1.0, (state["step"] + 1) / 200)
+            b_rng = np.random.default_rng([seed, state["step"]])
+            idx = b_rng.choice(tr, batch, replace=False)
+            x = torch.from_numpy(images[idx]).permute(0, 3, 1, 2).float().div_(255)
+            x, bl = augment_batch(x, [boxes[i] for i in idx], b_rng, torch)
+            hm_t, reg_t, mask_t = (torch.from_numpy(a) for a in draw_targets(bl, C, ow, oh, S))
+            hm, reg = model.forward_logits((x - spec.mean) / spec.std)
+            l_hm = focal_loss(hm, hm_t)
+            npos = mask_t.sum().clamp(min=1)
+            l_size = (torch.abs(reg[:, :2] - reg_t[:, :2]) * mask_t).sum() / npos
+            l_off = (torch.abs(reg[:, 2:] - reg_t[:, 2:]) * mask_t).sum() / npos
+            loss = l_hm + l_size + l_off
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            losses.append(float(loss.detach()))
+            state["step"] += 1
+            now = time.perf_counter()
+            state["seconds"] = now - run_start
+            bar.n = int(min(state["seconds"], budget))
+            bar.set_postfix(step=state["step"], loss=f"{np.mean(losses[-50:]):.3f}")
+            if now - last_ckpt > 300:
+                state["history"].append({"step": state["step"], "minutes": round(state["seconds"] / 60, 2),
+                                         "loss": float(np.mean(losses[-100:]))})
+                save()
+                last_ckpt = now
+    except KeyboardInterrupt:
+        save()
+        bar.close()
+        raise UserError(f"interrupted; checkpoint saved in {ckpt}, rerun the same command to resume") from None
+    bar.close()
+    save()
+    model.eval()
+
+    # validation on held-out synthetic images, through the run-time decoder
+    dets, gts = [], []
+    with torch.no_grad():
+        for i in range(0, len(va), 32):
+            j = va[i:i + 32]
+            maps = model(torch.from_numpy(normalise(images[j], spec))).numpy()
+            for k, m in zip(j, maps):
+                dets.append(decode(m, spec))
+                gts.append([(spec.classes[int(c)], b) for c, *b in boxes[k]])
+    ap = detection_ap(dets, gts, spec.classes)
+    log(f"synthetic validation: AP {ap['ap']:.3f}, AP50 {ap['ap50']:.3f}, recall50 {ap['recall50']:.3f}")
+
+    path = root / spec.file
+    diff = export_detector(model, spec, path, normalise(images[va[:4]], spec))
+    log(f"{spec.file}: max |onnx - torch| = {diff:.2e}")
+    if diff > 1e-4:
+        raise UserError(f"exported detector differs from torch by {diff:.2e} (> 1e-4)")
+    manifest = {k: v for k, v in bundle.manifest.items() if k not in ("files", "format")}
+    manifest["artefacts"] = dict(manifest.get("artefacts", {}), detector=spec.file)
+    d = spec.to_dict()
+    d["training"] = {"data": str(data_dir), "images": len(tr), "validation": len(va), "parameters": n_params,
+                     "width": width, "steps": state["step"], "batch": batch,
+                     "minutes": round(state["seconds"] / 60, 1), "seed": seed, "onnx_max_abs_diff": diff,
+                     "validation_synthetic": ap, "command": command or "app.py " + " ".join(sys.argv[1:]),
+                     "loss_history": state["history"][-20:]}
+    manifest["detector"] = d
+    write_manifest(root, manifest)
+    log(f"added {spec.file} to {root} ({path.stat().st_size / 1e6:.1f} MB); {(time.perf_counter() - t0) / 60:.1f} min")
+    return d
+
+
+def export_detector(model, spec: DetectorSpec, path: Path, x_check: np.ndarray) -> float:
+    """ONNX (dynamic batch); returns max |onnx - torch| on ``x_check``."""
+    import torch
+    from .estimator import make_session
+    model.eval()
+    torch.onnx.export(model, (torch.from_numpy(x_check[:1]),), str(path), input_names=["image"],
+                      output_names=["maps"], dynamic_axes={"image": {0: "batch"}, "maps": {0: "batch"}},
+                      opset_version=17, dynamo=False)
+    got = make_session(path).run(None, {"image": x_check})[0]
+    with torch.no_grad():
+        ref = model(torch.from_numpy(x_check)).numpy()
+    return float(np.abs(got - ref).max())

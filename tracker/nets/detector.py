@@ -1,0 +1,58 @@
+"""A small anchor-free detector (CenterNet-style) for the CPU: a plain conv backbone to
+stride 32, a top-down pathway back to stride 8, and three heads (class centre heatmaps,
+log box size, centre offset). Output contract: ``tracker/detector.py``."""
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+
+def cbr(cin, cout, stride=1, k=3):
+    return nn.Sequential(nn.Conv2d(cin, cout, k, stride, k // 2, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True))
+
+
+class CenterNetLite(nn.Module):
+    def __init__(self, n_classes: int, width: int = 32):
+        super().__init__()
+        w = width
+        self.n_classes = n_classes
+        self.s2 = nn.Sequential(cbr(3, w // 2, 2), cbr(w // 2, w // 2))                      # 1/2
+        self.s4 = nn.Sequential(cbr(w // 2, w, 2), cbr(w, w))                                # 1/4
+        self.s8 = nn.Sequential(cbr(w, 2 * w, 2), cbr(2 * w, 2 * w))                        # 1/8
+        self.s16 = nn.Sequential(cbr(2 * w, 3 * w, 2), cbr(3 * w, 3 * w))                    # 1/16
+        self.s32 = nn.Sequential(cbr(3 * w, 4 * w, 2), cbr(4 * w, 4 * w))                    # 1/32
+        self.lat16 = cbr(3 * w, 2 * w, k=1)
+        self.top32 = cbr(4 * w, 2 * w, k=1)
+        self.smooth16 = cbr(2 * w, 2 * w)
+        self.lat8 = cbr(2 * w, 2 * w, k=1)
+        self.smooth8 = cbr(2 * w, 2 * w)
+        self.head_hm = nn.Sequential(cbr(2 * w, 2 * w), nn.Conv2d(2 * w, n_classes, 1))
+        self.head_box = nn.Sequential(cbr(2 * w, 2 * w), nn.Conv2d(2 * w, 4, 1))
+        nn.init.constant_(self.head_hm[-1].bias, -math.log((1 - 0.01) / 0.01))  # prior 0.01 (focal-loss init)
+
+    def forward_logits(self, x):
+        x8 = self.s8(self.s4(self.s2(x)))
+        x16 = self.s16(x8)
+        x32 = self.s32(x16)
+        p16 = self.smooth16(self.lat16(x16) + F.interpolate(self.top32(x32), size=x16.shape[-2:], mode="nearest"))
+        p8 = self.smooth8(self.lat8(x8) + F.interpolate(p16, size=x8.shape[-2:], mode="nearest"))
+        return self.head_hm(p8), self.head_box(p8)
+
+    def forward(self, x):
+        """The exported graph: (B, C + 4, h, w) with sigmoid heatmaps."""
+        hm, box = self.forward_logits(x)
+        return torch.cat([torch.sigmoid(hm), box], 1)
+
+
+def focal_loss(logits, target):
+    """CenterNet's penalty-reduced focal loss on Gaussian centre heatmaps, per positive."""
+    p = torch.sigmoid(logits).clamp(1e-4, 1 - 1e-4)
+    pos = target.eq(1).float()
+    neg = 1 - pos
+    pos_loss = torch.log(p) * (1 - p) ** 2 * pos
+    neg_loss = torch.log(1 - p) * p ** 2 * (1 - target) ** 4 * neg
+    n = pos.sum().clamp(min=1)
+    return -(pos_loss.sum() + neg_loss.sum()) / n

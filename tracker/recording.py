@@ -1,0 +1,39 @@
+"""Pack a BOP scene into a recording: its frames as one MJPEG video (``rgb.avi``, im_ids in
+order) beside its ``scene_camera.json`` / ``scene_gt.json``. ``load_scene`` reads such a
+folder like any BOP scene, so the demo, ``eval`` and ``score`` all run on it."""
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .bop import SCENE_VIDEOS, load_scene
+from .errors import UserError
+
+
+def write_scene_video(scene_dir, out_dir, quality: int = 95, fps: float = 10.0) -> dict:
+    """Returns the video size and the PSNR of its frames against the originals."""
+    scene = load_scene(scene_dir)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / SCENE_VIDEOS[0]
+    h, w = scene.read_rgb(scene.im_ids[0]).shape[:2]
+    writer = cv2.VideoWriter(str(path), cv2.CAP_OPENCV_MJPEG, cv2.VideoWriter_fourcc(*"MJPG"), fps, (w, h),
+                             [cv2.VIDEOWRITER_PROP_QUALITY, quality])
+    if not writer.isOpened():
+        raise UserError(f"{path}: OpenCV cannot write an MJPEG video here")
+    for im_id in scene.im_ids:
+        rgb = scene.read_rgb(im_id)
+        if rgb.shape[:2] != (h, w):
+            raise UserError(f"{scene.root}: image {im_id} is {rgb.shape[1]}x{rgb.shape[0]}, not {w}x{h}")
+        writer.write(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    writer.release()
+    for name in ("scene_camera.json", "scene_gt.json", "scene_gt_info.json"):
+        if (scene.root / name).is_file():
+            shutil.copy(scene.root / name, out / name)
+    packed = load_scene(out)
+    psnr = [cv2.PSNR(scene.read_rgb(i), packed.read_rgb(i)) for i in scene.im_ids]
+    return {"video": str(path), "frames": len(psnr), "bytes": path.stat().st_size,
+            "psnr_min": float(np.min(psnr)), "psnr_median": float(np.median(psnr))}
