@@ -128,3 +128,33 @@ def test_training_resumes_from_its_checkpoint(tiny_split, tmp_path):
     logs = []
     train_bundle(tiny_split, out, method="cvml", size=32, latent=16, minutes=0.1, reg_minutes=0.02, log=logs.append)
     assert any(str(l).startswith("resumed from") for l in logs)
+
+
+def test_ablate_tables_on_a_tiny_bundle(tiny_bundle, tmp_path):
+    import json
+
+    from tracker.ablate import ablate
+    res = ablate(tiny_bundle, tiny_bundle.parent / "split", tmp_path / "ablate.json", mlp_minutes=0.01,
+                 log=lambda *a: None)
+    assert json.loads((tmp_path / "ablate.json").read_text())["table_4_1"] == res["table_4_1"]
+    names = [r["method"] for r in res["table_4_1"]]
+    assert names == ["MLP + 6D", "RF + 6D", "MLP + quaternion", "RF + quaternion", "MLP + axis-angle",
+                     "RF + axis-angle", "NNS (codebook, cosine)"]
+    for r in res["table_4_1"]:
+        assert 0 <= r["add_recall_true_t"] <= 1 and 0 <= r["re_median_deg"] <= 180
+    assert [r["method"] for r in res["table_4_2a"]] == ["MLP", "RF", "KNN", "box centre"]
+    assert all(r["centre_err_mean_px"] >= 0 for r in res["table_4_2a"])
+    assert all(np.isfinite(r["tz_err_mean_mm"]) for r in res["table_4_2b"])
+
+
+def test_report_on_a_tiny_bundle(tiny_bundle, tmp_path):
+    from tracker.report import build_report
+    from tracker.paths import DEMO_RECORDING
+    path = build_report(tiny_bundle, DEMO_RECORDING, tmp_path / "rep", max_frames=3, log=lambda *a: None)
+    md = path.read_text()
+    for head in ("Table 5.6", "Table 5.7", "Figure 5.3", "Tables 4.1 and 4.2", "t-SNE"):
+        assert head in md
+    assert "genus 2" in md or "can 2" in md  # the can's genus, from its mesh
+    for png in ("recall_vs_visibility.png", "tsne_objects.png", "tsne_genus.png"):
+        assert (tmp_path / "rep" / png).stat().st_size > 1000
+    assert (tmp_path / "rep" / "eval_gt_aae.json").is_file()

@@ -137,6 +137,21 @@ def cmd_train_detector(args) -> int:
     return 0
 
 
+def cmd_ablate(args) -> int:
+    from .ablate import ablate
+    ablate(args.model, args.data, args.json, mlp_minutes=args.mlp_minutes, max_train=args.max_train, seed=args.seed)
+    print(f"wrote {args.json}")
+    return 0
+
+
+def cmd_report(args) -> int:
+    from .report import build_report
+    path = build_report(args.model, args.data, args.out, ablate_json=args.ablate, reuse=args.reuse,
+                        max_frames=args.max_frames, log=lambda m: print(m, file=sys.stderr))
+    print(f"wrote {path} (with its PNG plots and evaluation JSONs beside it)")
+    return 0
+
+
 def cmd_pack_scene(args) -> int:
     from .recording import write_scene_video
     r = write_scene_video(args.data, args.out, quality=args.quality, fps=args.fps)
@@ -333,6 +348,24 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--max-images", type=int, default=None, help="use only the first N images")
     s.set_defaults(func=cmd_train_detector)
+
+    s = sub.add_parser("ablate", help="regressor ablations (thesis Tables 4.1, 4.2) on the synthetic validation split")
+    s.add_argument("--model", required=True, help="bundle whose frozen encoder gives the latent codes")
+    s.add_argument("--data", required=True, help="the 'synth' split the bundle was trained on")
+    s.add_argument("--json", required=True, help="where the tables go (the report command reads it)")
+    s.add_argument("--mlp-minutes", type=float, default=1.0, help="time budget of each MLP")
+    s.add_argument("--max-train", type=int, default=20000, help="subsample the training crops to this many")
+    s.add_argument("--seed", type=int, default=0)
+    s.set_defaults(func=cmd_ablate)
+
+    s = sub.add_parser("report", help="reproduction report: our numbers next to the thesis's (Markdown + PNG)")
+    s.add_argument("--model", default="models/lmo")
+    s.add_argument("--data", default=None, help="BOP scene with ground truth (default: the bundled recording)")
+    s.add_argument("--out", required=True, help="report folder")
+    s.add_argument("--ablate", help="JSON written by 'app.py ablate' (Tables 4.1 / 4.2)")
+    s.add_argument("--reuse", action="store_true", help="reuse evaluation JSONs already in --out")
+    s.add_argument("--max-frames", type=int)
+    s.set_defaults(func=cmd_report)
 
     s = sub.add_parser("pack-scene", help="a BOP scene as a recording: frames in one MJPEG video + its JSON files")
     s.add_argument("--data", required=True, help="BOP scene folder")

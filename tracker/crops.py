@@ -51,6 +51,14 @@ class CropSet:
             return cls(**{f: z[f] for f in cls.__dataclass_fields__})
 
 
+def train_val_split(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """(train, validation) indices of ``n`` crops, a tenth for validation: the one split that
+    training and the ablations use."""
+    perm = np.random.default_rng(seed).permutation(n)
+    n_va = max(1, n // 10)
+    return np.sort(perm[n_va:]), np.sort(perm[:n_va])
+
+
 def jitter_box(box, rng: np.random.Generator, shift: float = 0.06, scale: float = 0.08) -> np.ndarray:
     """A detector-like box: centre moved and size changed by a few percent."""
     x, y, w, h = (float(v) for v in box)

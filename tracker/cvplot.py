@@ -220,3 +220,34 @@ def save_png(path, rgb: np.ndarray) -> Path:
     if not cv2.imwrite(str(path), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
         raise OSError(f"could not write {path}")
     return path
+
+
+def scatter(xy: np.ndarray, labels, names: dict | None = None, title: str = "", width: int = 760,
+            height: int = 620, radius: int = 3) -> np.ndarray:
+    """2D points coloured by ``labels`` (one colour per distinct label, legend on the right)."""
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    labels = np.asarray(labels)
+    keys = sorted(set(labels.tolist()))
+    names = names or {}
+    colours = PALETTE + [(23, 190, 207), (188, 189, 34), (227, 119, 194), (127, 127, 127)]
+    img = np.full((height, width, 3), 255, np.uint8)
+    legend_w, top, pad = 170, 34 if title else 10, 12
+    if title:
+        _text(img, title, ((width - legend_w) // 2, 22), scale=0.55, anchor="centre")
+    x0, y0, x1, y1 = pad, top, width - legend_w - pad, height - pad
+    cv2.rectangle(img, (x0, y0), (x1, y1), GREY, 1)
+    if len(xy):
+        lo, hi = xy.min(0), xy.max(0)
+        span = np.where(hi - lo > 0, hi - lo, 1.0)
+        uv = (xy - lo) / span
+        u = x0 + 6 + uv[:, 0] * (x1 - x0 - 12)
+        v = y1 - 6 - uv[:, 1] * (y1 - y0 - 12)
+        for k, key in enumerate(keys):
+            col = colours[k % len(colours)]
+            for a, b in zip(u[labels == key], v[labels == key]):
+                cv2.circle(img, (int(round(a)), int(round(b))), radius, col, -1, cv2.LINE_AA)
+    for k, key in enumerate(keys):
+        yy = top + 14 + 20 * k
+        cv2.circle(img, (width - legend_w + 10, yy - 4), 5, colours[k % len(colours)], -1, cv2.LINE_AA)
+        _text(img, str(names.get(key, key)), (width - legend_w + 22, yy))
+    return img

@@ -74,6 +74,18 @@ def load_models(models_dir, obj_ids=None) -> dict[int, ObjectModel]:
     return {k: load_mesh(p, k) for k, p in found.items()}
 
 
+def genus(mesh) -> int | None:
+    """Topological genus (number of handles) of a closed mesh from its Euler characteristic,
+    V - E + F = 2 - 2g per component; None if the mesh is not watertight. LM-O: the can has
+    genus 2 and the holepuncher 3, the others 0 (the thesis's Section 4.3.3 uses genus as a
+    shape attribute the latent space may encode)."""
+    m = trimesh.Trimesh(np.asarray(mesh.vertices), np.asarray(mesh.faces), process=False)
+    if not m.is_watertight:
+        return None
+    n_comp = len(m.split(only_watertight=False))
+    return int(round((2 * n_comp - m.euler_number) / 2))
+
+
 def diameter(vertices: np.ndarray) -> float:
     """Largest distance between two vertices (over the convex hull's vertices)."""
     v = np.asarray(vertices, dtype=np.float64)

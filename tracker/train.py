@@ -82,7 +82,7 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
                  models_info_path=None, codebook_per_object: int = 1500, reg_minutes: float = 4.0,
                  log=print, command: str | None = None) -> dict:
     torch = _torch()
-    from .crops import CropSet, build_training_crops
+    from .crops import CropSet, build_training_crops, train_val_split
     from .meshes import load_models
     from .nets.autoencoder import METHODS, AutoEncoder
     from .nets.fit import encode_all, onehot, to_tensor, train_autoencoder
@@ -112,9 +112,8 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
     n_obj = len(obj_ids)
 
     rng = np.random.default_rng(seed)
-    perm = rng.permutation(len(cs))
-    n_va = max(1, len(cs) // 10)
-    va, tr = np.sort(perm[:n_va]), np.sort(perm[n_va:])
+    rng.permutation(len(cs))  # (keeps the codebook's draws below as they were)
+    tr, va = train_val_split(len(cs), seed)
     c_all = onehot(idx, n_obj)
 
     model = AutoEncoder(method, size, latent, n_obj)
@@ -171,7 +170,14 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
         log(f"validation ({mode}): median RE {val[mode]['re_median_deg']:.1f} deg, "
             f"median TE {val[mode]['te_median_mm']:.1f} mm")
 
-    # ---- export
+    # ---- export (a detector already in the bundle, for the same objects, is kept)
+    kept_detector = None
+    if (out / "manifest.json").is_file():
+        old = json.loads((out / "manifest.json").read_text())
+        det = old.get("detector")
+        if det and sorted(det.get("classes", [])) == obj_ids and (out / det["file"]).is_file():
+            kept_detector = (det, (out / det["file"]).read_bytes())
+            log(f"keeping the bundle's detector ({det['file']})")
     if out.exists():
         shutil.rmtree(out)
     (out / "meshes").mkdir(parents=True)
@@ -213,6 +219,11 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
         "command": command or "app.py " + " ".join(sys.argv[1:]),
         "created": time.strftime("%Y-%m-%d %H:%M:%S"),
     }
+    if kept_detector is not None:
+        det, blob = kept_detector
+        (out / det["file"]).write_bytes(blob)
+        manifest["detector"] = det
+        manifest["artefacts"]["detector"] = det["file"]
     from .bundle import write_manifest
     write_manifest(out, manifest)
     total = sum(p.stat().st_size for p in out.rglob("*") if p.is_file())

@@ -1,0 +1,163 @@
+"""The detector's decoding, NMS, letterbox, COCO AP, and a tiny training run end to end."""
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from tracker.detection_metrics import detection_ap
+from tracker.detector import DetectorSpec, Letterbox, decode, iou_matrix, letterbox, nms
+from tracker.errors import UserError
+from tracker.estimator import Detection
+
+
+def _maps(spec, peaks_):
+    """Hand-made network output: peaks = [(class index, y, x, score, w px, h px, off x, off y)]."""
+    C = len(spec.classes)
+    m = np.zeros((C + 4, 30, 40), np.float32)
+    m[:C] = 0.01
+    for c, y, x, s, w, h, ox, oy in peaks_:
+        m[c, y, x] = s
+        m[C:, y, x] = (np.log(w / spec.stride), np.log(h / spec.stride), ox, oy)
+    return m
+
+
+def test_decode_one_peak_in_input_and_frame_pixels():
+    spec = DetectorSpec(classes=[1, 5, 6])
+    m = _maps(spec, [(1, 10, 20, 0.9, 32, 16, 0.5, 0.25)])
+    (d,) = decode(m, spec)
+    assert d.obj_id == 5 and d.score == pytest.approx(0.9)
+    cx, cy = 20.5 * 8, 10.25 * 8
+    np.testing.assert_allclose(d.box, [cx - 16, cy - 8, 32, 16], atol=1e-4)
+    # a 1280x960 frame letterboxed to 320x240 is scaled by 1/4: boxes come back 4x
+    (d2,) = decode(m, spec, Letterbox(0.25, 0, 0), (1280, 960))
+    np.testing.assert_allclose(d2.box, 4 * d.box, atol=1e-3)
+
+
+def test_decode_threshold_nms_and_one_per_class():
+    spec = DetectorSpec(classes=[1, 5], score_thresh=0.3, max_per_class=1)
+    assert decode(_maps(spec, [(0, 5, 5, 0.2, 20, 20, 0, 0)]), spec) == []  # below the threshold
+    m = _maps(spec, [(0, 10, 10, 0.9, 40, 40, 0, 0), (0, 10, 13, 0.8, 40, 40, 0, 0),  # same object, twice
+                     (1, 10, 11, 0.7, 40, 40, 0, 0)])                                   # another object
+    dets = decode(m, spec)
+    assert [d.obj_id for d in dets] == [1, 5]
+    assert dets[0].score == pytest.approx(0.9)
+    spec.max_per_class = 5
+    spec.nms_iou = 0.9  # the two boxes of class 0 overlap by IoU 0.25: both kept now
+    assert sum(d.obj_id == 1 for d in decode(m, spec)) == 2
+
+
+def test_nms_and_iou():
+    boxes = np.array([[0, 0, 10, 10], [1, 1, 10, 10], [50, 50, 10, 10]], float)
+    assert iou_matrix(boxes[:1], boxes[1:2])[0, 0] == pytest.approx(81 / 119)
+    assert nms(boxes, np.array([0.5, 0.9, 0.7]), 0.5) == [1, 2]
+
+
+def test_letterbox_maps_boxes_back():
+    img = np.zeros((720, 1280, 3), np.uint8)
+    img[100:200, 300:500] = 255
+    lb_img, lb = letterbox(img, 320, 240)
+    assert lb_img.shape == (240, 320, 3)
+    box_in = lb.to_input(np.array([[300, 100, 200, 100]]))
+    ys, xs = np.nonzero(lb_img[..., 0] > 127)
+    assert abs(xs.min() - box_in[0, 0]) <= 1 and abs(ys.min() - box_in[0, 1]) <= 1
+    np.testing.assert_allclose(lb.to_frame(box_in), [[300, 100, 200, 100]], atol=1e-9)
+
+
+def test_ap_hand_cases():
+    gt = [[(1, np.array([10, 10, 20, 20.]))], [(1, np.array([50, 50, 20, 20.]))]]
+    perfect = [[Detection(1, np.array([10, 10, 20, 20.]), 0.9)], [Detection(1, np.array([50, 50, 20, 20.]), 0.8)]]
+    r = detection_ap(perfect, gt, [1])
+    assert r["ap"] == pytest.approx(1.0) and r["recall50"] == 1.0
+    # a false positive scored above both hits: precision 1/2 then 2/3 -> AP50 = 2/3 (envelope)
+    fp = [perfect[0] + [Detection(1, np.array([200, 200, 20, 20.]), 0.95)], perfect[1]]
+    assert detection_ap(fp, gt, [1])["ap50"] == pytest.approx(2 / 3, abs=1e-9)
+    # one of the two missed: recall 0.5, AP 0.5
+    r = detection_ap([perfect[0], []], gt, [1])
+    assert r["recall50"] == 0.5 and r["ap50"] == pytest.approx(0.5, abs=0.01)
+    # a box shifted to IoU ~0.6 counts at 0.5 but not at 0.75
+    shifted = [[Detection(1, np.array([14, 10, 20, 20.]), 0.9)], perfect[1]]
+    r = detection_ap(shifted, gt, [1])
+    assert r["ap50"] == pytest.approx(1.0) and r["ap"] < 0.8
+    # a detection on an ignored (< 10 % visible) instance is not a false positive
+    ign = [[(1, np.array([200, 200, 20, 20.]))], []]
+    assert detection_ap(fp, gt, [1], ignore=ign)["ap50"] == pytest.approx(1.0)
+
+
+@pytest.fixture(scope="module")
+def tiny_detector_bundle(tiny_bundle, tmp_path_factory):
+    from tracker.detector_train import train_detector
+    root = tmp_path_factory.mktemp("det") / "lmo"
+    shutil.copytree(tiny_bundle, root)
+    train_detector(tiny_bundle.parent / "split", root, minutes=0.02, width=8, batch=2, log=lambda *a: None)
+    return root
+
+
+def test_tiny_training_exports_and_loads(tiny_detector_bundle, lmo_dev):
+    from tracker.bundle import open_bundle
+    from tracker.detector import Detector
+    b = open_bundle(tiny_detector_bundle)
+    spec = b.manifest["detector"]
+    assert spec["classes"] == [o["id"] for o in b.objects]
+    assert spec["training"]["onnx_max_abs_diff"] <= 1e-4
+    det = Detector(b)
+    frame = lmo_dev.read_rgb(lmo_dev.im_ids[0])
+    out = det(frame)
+    assert all(o.obj_id in spec["classes"] and 0 <= o.box[0] <= 640 for o in out)
+    assert isinstance(det(frame[:300, :500].copy()), list)  # another frame size
+
+
+def test_detector_classes_must_match_bundle(tiny_detector_bundle, tmp_path):
+    from tracker.bundle import open_bundle
+    from tracker.detector import Detector
+    bad = tmp_path / "lmo"
+    shutil.copytree(tiny_detector_bundle, bad)
+    m = json.loads((bad / "manifest.json").read_text())
+    m["detector"]["classes"] = m["detector"]["classes"][:-1] + [99]
+    (bad / "manifest.json").write_text(json.dumps(m))
+    with pytest.raises(UserError, match="not objects of this bundle"):
+        Detector(open_bundle(bad))
+    m["detector"]["classes"] = m["detector"]["classes"][:-1]
+    (bad / "manifest.json").write_text(json.dumps(m))
+    with pytest.raises(UserError, match="output channels"):
+        Detector(open_bundle(bad))
+
+
+def test_box_schedule_runs_detector_every_n():
+    from tracker.estimator import PoseEstimate
+    from tracker.loop import BoxSchedule
+    calls = []
+
+    def fake_detector(rgb):
+        calls.append(1)
+        return [Detection(1, np.array([100, 100, 50, 50.]), 0.9)]
+
+    K = np.array([[500, 0, 320], [0, 500, 240], [0, 0, 1.]])
+    pts = {1: np.array([[-30, -30, 0], [30, 30, 0.]])}
+    s = BoxSchedule(fake_detector, 3, pts)
+    img = np.zeros((480, 640, 3), np.uint8)
+    pose = [PoseEstimate(1, np.eye(3), np.array([0, 0, 500.]), 0.9, np.zeros(4))]
+    sources = []
+    for _ in range(7):
+        dets, how = s.boxes(img, K)
+        sources.append(how)
+        s.update(pose)
+    assert sources == ["detector", "pose", "pose", "detector", "pose", "pose", "detector"]
+    s.update(pose)
+    d, how = s.boxes(img, K)
+    np.testing.assert_allclose(d[0].box, [290, 210, 61, 61])  # the points projected at the previous pose
+    s.update([])  # the object was lost: the next frame runs the detector
+    assert s.boxes(img, K)[1] == "detector"
+
+
+def test_loop_with_the_detector_on_the_bundled_recording(tiny_detector_bundle, tmp_path):
+    from tracker.bop import read_results
+    from tracker.loop import TrackConfig, run_track
+    from tracker.paths import DEMO_RECORDING
+    out = tmp_path / "run"
+    s = run_track(TrackConfig(str(DEMO_RECORDING), str(tiny_detector_bundle), out, rerun="off", max_frames=3,
+                              boxes="detector", detect_every=2, smooth=0.5), log=lambda m: None)
+    assert s["frames"] == 3 and s["boxes"] == "detector" and 2 <= s["detector_frames"] <= 3
+    assert s["accuracy"]["n_gt"] > 20  # scored against the recording's ground truth
+    assert len((out / "timings.csv").read_text().splitlines()) == 4
+    assert all(e.im_id in (3, 8, 17) for e in read_results(out / "poses.csv"))
