@@ -158,3 +158,17 @@ def test_report_on_a_tiny_bundle(tiny_bundle, tmp_path):
     for png in ("recall_vs_visibility.png", "tsne_objects.png", "tsne_genus.png"):
         assert (tmp_path / "rep" / png).stat().st_size > 1000
     assert (tmp_path / "rep" / "eval_gt_aae.json").is_file()
+
+
+def test_distance_knn_equals_scikit_learns_brute_force():
+    from sklearn.neighbors import KNeighborsRegressor
+
+    from tracker.regressors import DistanceKNN
+    rng = np.random.default_rng(0)
+    X, y = rng.normal(size=(2000, 12)), rng.normal(size=2000)
+    m = DistanceKNN(k=6, box_weight=2.5).fit(X, y)
+    Q = rng.normal(size=(700, 12))  # more than one chunk of queries
+    Q[3] = X[10]  # a training point as a query
+    ref = KNeighborsRegressor(6, weights="distance", algorithm="brute").fit(
+        m._prep(X).astype(np.float32), y.astype(np.float32)).predict(m._prep(Q).astype(np.float32))
+    np.testing.assert_allclose(m.predict(Q), ref, atol=1e-5)

@@ -152,6 +152,13 @@ def cmd_report(args) -> int:
     return 0
 
 
+def cmd_decimate(args) -> int:
+    from .decimate import add_overlay_meshes
+    add_overlay_meshes(args.model, args.faces)
+    print(f"{args.model}: overlay meshes of about {args.faces} faces added, manifest re-hashed")
+    return 0
+
+
 def cmd_pack_scene(args) -> int:
     from .recording import write_scene_video
     r = write_scene_video(args.data, args.out, quality=args.quality, fps=args.fps)
@@ -238,7 +245,8 @@ def cmd_bench(args) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(args.out) if args.out else Path(tmp)
         s = run_track(TrackConfig(args.source, args.model, out, args.calib, args.rerun, args.frames, False,
-                                  not args.no_overlay), log=lambda m: print(m, file=sys.stderr))
+                                  not args.no_overlay, args.boxes, detect_every=args.detect_every,
+                                  obj_ids=args.obj_ids), log=lambda m: print(m, file=sys.stderr))
         rows = [l.split(",") for l in (out / "timings.csv").read_text().splitlines()]
     head, rows = rows[0], rows[1:]
     col = {h: i for i, h in enumerate(head)}
@@ -252,7 +260,9 @@ def cmd_bench(args) -> int:
            "ms_per_object": round(float(np.median(per["encode"] + per["regress"])) / objs, 3) if objs else None,
            "stages_ms": {k: {"median": round(float(np.median(v)), 3), "p95": round(float(np.percentile(v, 95)), 3)}
                          for k, v in per.items()},
-           "source": str(args.source), "model": str(args.model), "rerun": args.rerun, "overlay": not args.no_overlay}
+           "source": str(args.source), "model": str(args.model), "rerun": args.rerun, "overlay": not args.no_overlay,
+           "boxes": s["boxes"], "detect_every": args.detect_every, "obj_ids": args.obj_ids,
+           "accuracy": s.get("accuracy")}
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(json.dumps(res, indent=1))
     print(f"{res['frames']} frames, {res['objects_per_frame']} objects/frame: {res['fps']} fps (median), "
@@ -367,6 +377,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--max-frames", type=int)
     s.set_defaults(func=cmd_report)
 
+    s = sub.add_parser("decimate", help="add light overlay meshes (quadric decimation) to a bundle")
+    s.add_argument("--model", required=True)
+    s.add_argument("--faces", type=int, default=1500, help="target triangle count per object")
+    s.set_defaults(func=cmd_decimate)
+
     s = sub.add_parser("pack-scene", help="a BOP scene as a recording: frames in one MJPEG video + its JSON files")
     s.add_argument("--data", required=True, help="BOP scene folder")
     s.add_argument("--out", required=True, help="recording folder (rgb.avi, scene_camera.json, scene_gt.json)")
@@ -398,9 +413,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("bench", help="per-stage latency of the live pipeline")
     s.add_argument("--model", default=str(Path(__file__).resolve().parents[1] / "models" / "lmo"))
-    s.add_argument("--source", required=True)
+    s.add_argument("--source", default=str(Path(__file__).resolve().parents[1] / "demo" / "lmo_dev"),
+                   help="default: the bundled recording")
     s.add_argument("--calib")
     s.add_argument("--frames", type=int, default=50)
+    s.add_argument("--boxes", choices=["auto", "gt", "detector"], default="detector",
+                   help="detector (default; the real pipeline) or ground-truth boxes")
+    s.add_argument("--detect-every", type=int, default=1, metavar="N")
+    s.add_argument("--obj-ids", type=int, nargs="+", help="track only these objects (e.g. one, for the 1-object case)")
     s.add_argument("--skip-first", type=int, default=2, help="warm-up frames left out of the statistics")
     s.add_argument("--rerun", choices=["save", "off"], default="save")
     s.add_argument("--no-overlay", action="store_true")

@@ -39,6 +39,7 @@ class TrackConfig:
     detect_every: int = 1
     detector_threads: int = 2
     smooth: float | None = None  # PoseSmoother alpha (None: off)
+    obj_ids: list[int] | None = None  # track only these objects (None: all of the bundle's)
 
 
 class _Stopper:
@@ -126,7 +127,8 @@ def run_track(cfg: TrackConfig, log=print) -> dict:
     elif "detector" not in est.bundle.manifest.get("artefacts", {}):
         log("warning: this bundle has no detector and the source has no ground truth: "
             "no boxes, so no poses; frames are still logged")
-    meshes = {o["id"]: load_mesh(est.bundle.root / o["mesh"], o["id"]).mesh for o in est.bundle.objects}
+    from .decimate import overlay_mesh_path
+    meshes = {o["id"]: load_mesh(overlay_mesh_path(est.bundle, o), o["id"]).mesh for o in est.bundle.objects}
     schedule = None
     if boxes_of is None and "detector" in est.bundle.manifest.get("artefacts", {}):
         from .detector import Detector
@@ -173,6 +175,8 @@ def run_track(cfg: TrackConfig, log=print) -> dict:
                     dets, _ = schedule.boxes(rgb, K)
                 else:
                     dets = _gt_detections(frame, boxes_of, set(est.obj_ids))
+                if cfg.obj_ids:
+                    dets = [d for d in dets if d.obj_id in cfg.obj_ids]
                 ms["detect"] = 1000 * (time.perf_counter() - t)
                 t = time.perf_counter()
                 poses = est.estimate(rgb, K, dets, timings=ms) if dets else []
@@ -245,7 +249,7 @@ def run_track(cfg: TrackConfig, log=print) -> dict:
     }
     has_gt = isinstance(src, BopSceneSource) and bool(src.scene.gt)
     gt_objs = {g.obj_id for i in src.ids[:n] for g in src.scene.gt.get(i, [])} if has_gt else set()
-    if has_gt and n and gt_objs <= set(est.obj_ids):
+    if has_gt and n and gt_objs <= set(est.obj_ids) and not cfg.obj_ids:  # (a subset would count the rest as missed)
         from .scoring import score_results
         m = score_results(out / "poses.csv", src.scene.root, est.bundle.root / "meshes",
                           models_info=est.bundle.root / "meshes" / "models_info.json",

@@ -23,6 +23,9 @@ KNN_K = (1, 2, 3, 5, 8, 12, 20)
 KNN_BOX_WEIGHT = (1.0, 3.0, 10.0)
 
 
+OVERLAY_FACES = 1500
+
+
 def _torch():
     try:
         import torch
@@ -226,6 +229,8 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
         manifest["artefacts"]["detector"] = det["file"]
     from .bundle import write_manifest
     write_manifest(out, manifest)
+    from .decimate import add_overlay_meshes
+    add_overlay_meshes(out, OVERLAY_FACES, log=lambda *a: None)  # light meshes for the live overlay
     total = sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
     log(f"bundle {out}: {total / 1e6:.1f} MB, {(time.perf_counter() - t0) / 60:.1f} min in all")
     return manifest
