@@ -1,6 +1,7 @@
 """The frame loop on short replays: files written, rerun recording readable, threaded capture."""
 import json
 import time
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -97,3 +98,19 @@ def test_missing_camera_is_a_clear_error():
             return False
     with pytest.raises(UserError, match="no camera"):
         CameraSource(7, capture=Closed())
+
+
+def test_looping_replay_numbers_frames_and_reports_memory(tiny_bundle, data_dir, tmp_path):
+    import shutil
+    folder = tmp_path / "imgs"
+    folder.mkdir()
+    for i in (3, 8):
+        shutil.copy(data_dir / "lmo" / "dev" / "rgb" / f"{i:06d}.png", folder)
+    out = tmp_path / "run"
+    s = run_track(TrackConfig(str(folder), str(tiny_bundle), out, calib=str(Path(__file__).resolve().parents[1] / "calib" / "lmo_kinect.yml"), rerun="off",
+                              max_frames=5, loop=True), log=lambda m: None)
+    assert s["frames"] == 5 and s["looped"] and s["rss_mb"]["current"] > 0
+    rows = (out / "timings.csv").read_text().splitlines()[1:]
+    assert [int(r.split(",")[0]) for r in rows] == [0, 1, 2, 3, 4]
+    with pytest.raises(UserError, match="camera cannot be looped"):
+        run_track(TrackConfig("0", str(tiny_bundle), tmp_path / "cam", loop=True), log=lambda m: None)

@@ -229,7 +229,8 @@ def cmd_track(args) -> int:
     from .loop import TrackConfig, run_track
     out = Path(args.out) if args.out else _default_run_dir("track")
     cfg = TrackConfig(args.source, args.model, out, args.calib, args.rerun, args.max_frames, args.realtime,
-                      not args.no_overlay, args.boxes, detect_every=args.detect_every, smooth=args.smooth)
+                      not args.no_overlay, args.boxes, detect_every=args.detect_every, smooth=args.smooth,
+                      loop=args.loop)
     s = run_track(cfg, log=lambda m: print(m, file=sys.stderr))
     _print_run(s, out)
     return 130 if s["interrupted"] else 0
@@ -295,6 +296,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--max-frames", type=int)
     s.add_argument("--realtime", action="store_true", help="play recordings at their recorded rate")
     s.add_argument("--no-overlay", action="store_true", help="skip rendering the overlay")
+    s.add_argument("--loop", action="store_true", help="replay a recording again and again up to --max-frames (soak)")
     s.add_argument("--detect-every", type=int, default=1, metavar="N",
                    help="run the detector every N frames (and whenever an object is lost); in between, "
                         "boxes come from the previous poses")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import signal
 import time
 from dataclasses import dataclass
@@ -40,6 +41,9 @@ class TrackConfig:
     detector_threads: int = 2
     smooth: float | None = None  # PoseSmoother alpha (None: off)
     obj_ids: list[int] | None = None  # track only these objects (None: all of the bundle's)
+    # replay a recorded source again and again until max_frames (a soak test); frames are then
+    # numbered 0, 1, 2, ... in the logs, and no accuracy is computed
+    loop: bool = False
 
 
 class _Stopper:
@@ -110,7 +114,9 @@ def run_track(cfg: TrackConfig, log=print) -> dict:
     from .sources import BopSceneSource, open_source
     est = PoseEstimator(cfg.model)
     names = {o["id"]: o["name"] for o in est.bundle.objects}
-    src = open_source(cfg.source, max_frames=cfg.max_frames, realtime=cfg.realtime)
+    if cfg.loop and (str(cfg.source).isdigit() or str(cfg.source).startswith("/dev/video")):
+        raise UserError("--loop replays recordings; a camera cannot be looped")
+    src = open_source(cfg.source, max_frames=None if cfg.loop else cfg.max_frames, realtime=cfg.realtime)
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     boxes_of = None
@@ -151,15 +157,24 @@ def run_track(cfg: TrackConfig, log=print) -> dict:
     out_of_prior = 0
     last = time.perf_counter()
     fps = None
+    rss_early = None
     try:
         with _Stopper() as stopper:
             it = iter(src)
             while not stopper.stop:
                 t0 = time.perf_counter()
+                if cfg.loop and cfg.max_frames is not None and n >= cfg.max_frames:
+                    break
                 try:
                     frame = next(it)
                 except StopIteration:
-                    break
+                    if not (cfg.loop and n):
+                        break
+                    src.close()
+                    src = open_source(cfg.source, realtime=cfg.realtime)
+                    it = iter(src)
+                    frame = next(it)
+                index = n if cfg.loop else frame.index
                 ms = {"capture": 1000 * (time.perf_counter() - t0)}
                 t = time.perf_counter()
                 h, w = frame.rgb.shape[:2]
@@ -207,13 +222,13 @@ def run_track(cfg: TrackConfig, log=print) -> dict:
                 t = time.perf_counter()
                 if rr_sink is None:
                     rr_sink = RerunSink(cfg.rerun, out, meshes, names, K, (w, h))
-                rr_sink.log_frame(frame.index, rgb, vis, dets, poses)
+                rr_sink.log_frame(index, rgb, vis, dets, poses)
                 dt_frame = time.perf_counter() - t0
-                ests = [Estimate(0 if not isinstance(src, BopSceneSource) else _scene_id(cfg.source), frame.index,
+                ests = [Estimate(0 if not isinstance(src, BopSceneSource) else _scene_id(cfg.source), index,
                                  p.obj_id, p.score, p.R, p.t, dt_frame) for p in poses]
                 ms["log"] = 1000 * (time.perf_counter() - t)
                 ms["total"] = 1000 * (time.perf_counter() - t0)
-                csv_sink.write(ests, frame.index, frame.t_capture, ms)
+                csv_sink.write(ests, index, frame.t_capture, ms)
                 rr_sink.log_timings(ms, fps)
                 for k in STAGES:
                     stage_log[k].append(ms.get(k, 0.0))
@@ -221,6 +236,8 @@ def run_track(cfg: TrackConfig, log=print) -> dict:
                 fps = 1.0 / max(now - last, 1e-6)
                 last = now
                 n += 1
+                if n == 10:
+                    rss_early = _rss_mb()["current"]
                 n_poses += len(poses)
                 bad = sum(not in_prior(prior, p.R, p.t) for p in poses)
                 if bad and not out_of_prior:
@@ -244,10 +261,11 @@ def run_track(cfg: TrackConfig, log=print) -> dict:
         "camera_lost": bool(getattr(src, "lost", False)), "video_truncated": bool(getattr(src, "truncated", False)),
         "source": str(cfg.source), "model": str(cfg.model), "boxes": "gt" if boxes_of is not None else ("detector" if schedule is not None else "none"),
         "detector_frames": schedule.detector_frames if schedule is not None else None,
-        "detect_every": cfg.detect_every, "smoothing_alpha": cfg.smooth,
+        "detect_every": cfg.detect_every, "smoothing_alpha": cfg.smooth, "looped": cfg.loop,
+        "rss_mb": dict(_rss_mb(), after_10_frames=rss_early),
         "recording": str(rr_sink.path) if rr_sink is not None and rr_sink.path else None,
     }
-    has_gt = isinstance(src, BopSceneSource) and bool(src.scene.gt)
+    has_gt = isinstance(src, BopSceneSource) and bool(src.scene.gt) and not cfg.loop
     gt_objs = {g.obj_id for i in src.ids[:n] for g in src.scene.gt.get(i, [])} if has_gt else set()
     if has_gt and n and gt_objs <= set(est.obj_ids) and not cfg.obj_ids:  # (a subset would count the rest as missed)
         from .scoring import score_results
@@ -258,6 +276,19 @@ def run_track(cfg: TrackConfig, log=print) -> dict:
                                                  "te_median_mm", "visibility_source")}
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     return summary
+
+
+def _rss_mb() -> dict:
+    """Peak and current resident memory of this process (MB)."""
+    import resource
+    cur = None
+    try:
+        with open("/proc/self/statm") as f:
+            cur = int(f.read().split()[1]) * (os.sysconf("SC_PAGE_SIZE") / 1e6)
+    except OSError:
+        pass
+    return {"current": None if cur is None else round(cur, 1),
+            "peak": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3, 1)}
 
 
 def _scene_id(source) -> int:
