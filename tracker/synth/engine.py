@@ -55,6 +55,9 @@ class SynthConfig:
     crop_size: int = 128  # clean targets, rendered in the visibility window (visibility.WINDOW_PAD)
     jpeg_quality: tuple = (70, 95)
     obj_ids: list | None = None
+    # render the objects with their meshes decimated to about this many faces (the CPU
+    # rasteriser's cost grows with triangles); None: the full meshes
+    mesh_faces: int | None = None
 
 
 @dataclass
@@ -87,6 +90,10 @@ def _init_worker(cfg_dict: dict):
     models = load_models(cfg.models_dir, cfg.obj_ids)
     dis = distractor_meshes(np.random.default_rng([cfg.seed, 7]), 12)
     meshes = {k: m.mesh for k, m in models.items()}
+    if cfg.mesh_faces:
+        from ..decimate import decimate_mesh
+        meshes = {k: decimate_mesh(m, cfg.mesh_faces) for k, m in meshes.items()}
+    targets = dict(meshes)
     meshes.update({DISTRACTOR_BASE + i: m for i, m in enumerate(dis)})
     _W.update(
         cfg=cfg,
@@ -98,7 +105,7 @@ def _init_worker(cfg_dict: dict):
                 **{DISTRACTOR_BASE + i: diameter(np.asarray(m.vertices)) / 2 for i, m in enumerate(dis)}},
         n_dis=len(dis),
         scene=Renderer(cfg.width, cfg.height, meshes),
-        crop=Renderer(cfg.crop_size, cfg.crop_size, {k: m.mesh for k, m in models.items()}),
+        crop=Renderer(cfg.crop_size, cfg.crop_size, targets),
         bgs=Backgrounds(list_backgrounds(cfg.backgrounds_dir)),
     )
 
