@@ -67,6 +67,18 @@ def test_annotations_agree_with_an_independent_projection(small_split, lmo_model
     assert checked >= 10
 
 
+def test_decimated_meshes_keep_the_annotations_within_tolerance(tmp_path, data_dir, lmo_models):
+    """--mesh-faces renders decimated meshes: silhouettes stay close to the full mesh's."""
+    rep = generate(_cfg(data_dir, seed=6, mesh_faces=1500), tmp_path, 3, workers=1, progress=False)
+    assert rep.images == 3
+    scene = load_scene(tmp_path / "000000", require_gt=True)
+    for im_id in scene.im_ids:
+        for g in scene.gt[im_id]:
+            m = lmo_models[g.obj_id]
+            sil, mg = raster_silhouette(m.vertices, np.asarray(m.mesh.faces), scene.K(im_id), g.R, g.t)
+            assert g.info["px_count_all"] == pytest.approx(float(sil.sum()), rel=0.05, abs=40)
+
+
 def test_clean_targets_show_the_whole_object_on_black(small_split):
     root = small_split / "000000"
     windows = json.loads((root / "clean_crops.json").read_text())
