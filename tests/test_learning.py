@@ -28,21 +28,24 @@ def tiny_split(tmp_path_factory, data_dir):
     return out
 
 
-def _train(split, out, method):
+def _train(split, out, method, encoder="plain"):
     return train_bundle(split, out, method=method, size=32, latent=16, minutes=0.05, reg_minutes=0.02,
-                        models_info_path=None, log=lambda *a: None)
+                        models_info_path=None, log=lambda *a: None, encoder=encoder)
 
 
 @pytest.fixture(scope="module")
 def bundles(tiny_split, tmp_path_factory):
     root = tmp_path_factory.mktemp("bundles")
-    return {m: (_train(tiny_split, root / m, m), root / m) for m in ("dalsr", "cvml", "cvam")}
+    out = {m: (_train(tiny_split, root / m, m), root / m) for m in ("dalsr", "cvml", "cvam")}
+    out["cvam-resnet"] = (_train(tiny_split, root / "cvam-resnet", "cvam", "resnet"), root / "cvam-resnet")
+    return out
 
 
-@pytest.mark.parametrize("method", ["dalsr", "cvml", "cvam"])
+@pytest.mark.parametrize("method", ["dalsr", "cvml", "cvam", "cvam-resnet"])
 def test_every_method_trains_exports_and_runs(bundles, tiny_split, method):
     manifest, path = bundles[method]
-    assert manifest["method"] == method and manifest["pose_prior"] == "table"
+    assert manifest["method"] == method.split("-")[0] and manifest["pose_prior"] == "table"
+    assert manifest["encoder"] == ("resnet" if method.endswith("resnet") else "plain")
     assert manifest["training"]["onnx_max_abs_diff"] <= 1e-4
     assert {o["id"] for o in manifest["objects"]} == set(OBJS)
     est = PoseEstimator(path)

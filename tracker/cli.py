@@ -118,7 +118,7 @@ def cmd_train(args) -> int:
     from .train import train_bundle
     m = train_bundle(args.data, args.out, method=args.method, size=args.size, latent=args.latent,
                      minutes=args.minutes, seed=args.seed, max_images=args.max_images,
-                     models_info_path=args.models_info, reg_minutes=args.reg_minutes,
+                     models_info_path=args.models_info, reg_minutes=args.reg_minutes, encoder=args.encoder,
                      command="app.py " + " ".join(sys.argv[1:]))
     v = m["validation_synthetic"]
     print(f"wrote {args.out}: synthetic validation median RE {v['regression']['re_median_deg']:.1f} deg "
@@ -344,6 +344,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--data", required=True, help="a 'synth' split")
     s.add_argument("--out", required=True, help="bundle folder, e.g. models/lmo")
     s.add_argument("--method", choices=["dalsr", "cvml", "cvam"], default="cvam")
+    s.add_argument("--encoder", choices=["plain", "resnet"], default="plain",
+                   help="plain strided convs (CVML-base) or residual blocks (CVML-18 style)")
     s.add_argument("--size", type=int, default=64, help="crop side in pixels (thesis: 128)")
     s.add_argument("--latent", type=int, default=128)
     s.add_argument("--minutes", type=float, default=45.0, help="autoencoder time budget")

@@ -83,14 +83,16 @@ def export_encoder(model, size: int, n_cond: int, path: Path, x_check: np.ndarra
 def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent: int = 128,
                  minutes: float = 45.0, seed: int = 0, max_images: int | None = None,
                  models_info_path=None, codebook_per_object: int = 1500, reg_minutes: float = 4.0,
-                 log=print, command: str | None = None) -> dict:
+                 log=print, command: str | None = None, encoder: str = "plain") -> dict:
     torch = _torch()
     from .crops import CropSet, build_training_crops, train_val_split
     from .meshes import load_models
-    from .nets.autoencoder import METHODS, AutoEncoder
+    from .nets.autoencoder import ENCODERS, METHODS, AutoEncoder
     from .nets.fit import encode_all, onehot, to_tensor, train_autoencoder
     if method not in METHODS:
         raise UserError(f"unknown method '{method}' (choose from {', '.join(METHODS)})")
+    if encoder not in ENCODERS:
+        raise UserError(f"unknown encoder '{encoder}' (choose from {', '.join(ENCODERS)})")
     torch.set_num_threads(2)
     data_dir, out = Path(data_dir), Path(out_dir)
     cfg_path = data_dir / "synth_config.json"
@@ -119,7 +121,7 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
     tr, va = train_val_split(len(cs), seed)
     c_all = onehot(idx, n_obj)
 
-    model = AutoEncoder(method, size, latent, n_obj)
+    model = AutoEncoder(method, size, latent, n_obj, encoder=encoder)
     n_params = sum(p.numel() for p in model.parameters())
     log(f"{method}: {n_params / 1e6:.2f} M parameters, {len(tr)} train / {len(va)} validation crops, "
         f"{n_obj} objects, budget {minutes:.0f} min")
@@ -205,7 +207,7 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
     save_models_info(out / "meshes" / "models_info.json", {o: models_info[o] for o in obj_ids})
     Kt = np.asarray(synth["config"]["K"])
     manifest = {
-        "name": out.name, "method": method, "input_size": size, "latent_size": latent,
+        "name": out.name, "method": method, "encoder": encoder, "input_size": size, "latent_size": latent,
         "objects": objects,
         "training_camera": {"K": Kt.tolist(), "width": synth["config"]["width"], "height": synth["config"]["height"],
                             "focal_mean": focal_mean(Kt)},

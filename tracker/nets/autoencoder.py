@@ -6,9 +6,10 @@
 - ``cvam``: conditional VAE: the one-hot object label is tiled and concatenated to the
   input of every conv layer of encoder and decoder (CVAM-Pose, Table 4.12).
 
-Plain conv encoder (CVML-base), SiLU, nearest-neighbour upsampling + conv decoder (no
-transposed convolutions). The encoder's ``forward`` returns ``mu`` only: that is what is
-exported to ONNX.
+Encoders: ``plain`` (strided convs, CVML-base) or ``resnet`` (residual blocks with a
+strided 1x1 shortcut, the ResNet-style encoder of CVML-18 at CPU width; for cvam the label
+goes into every block). SiLU, nearest-neighbour upsampling + conv decoder (no transposed
+convolutions). The encoder's ``forward`` returns ``mu`` only: that is what is exported to ONNX.
 """
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ from torch import nn
 from torch.nn import functional as F
 
 METHODS = ("dalsr", "cvml", "cvam")
+ENCODERS = ("plain", "resnet")
 
 
 class CondConv(nn.Module):
@@ -34,13 +36,30 @@ class CondConv(nn.Module):
         return self.act(self.conv(x))
 
 
-class Encoder(nn.Module):
-    def __init__(self, size=64, latent=128, widths=(32, 64, 128, 256), n_cond=0, variational=True):
+class CondResBlock(nn.Module):
+    """Downsampling residual block: two convs (the label tiled into both) + a strided 1x1
+    shortcut, SiLU after the sum."""
+
+    def __init__(self, cin, cout, n_cond):
         super().__init__()
+        self.conv1 = CondConv(cin, cout, n_cond, stride=2)
+        self.conv2 = CondConv(cout, cout, n_cond, act=False)
+        self.skip = nn.Conv2d(cin, cout, 1, 2)
+
+    def forward(self, x, c=None):
+        return F.silu(self.conv2(self.conv1(x, c), c) + self.skip(x))
+
+
+class Encoder(nn.Module):
+    def __init__(self, size=64, latent=128, widths=(32, 64, 128, 256), n_cond=0, variational=True,
+                 arch: str = "plain"):
+        super().__init__()
+        if arch not in ENCODERS:
+            raise ValueError(f"unknown encoder {arch}")
         self.size, self.latent, self.n_cond, self.variational = size, latent, n_cond, variational
         layers, cin = [], 3
         for w in widths:
-            layers.append(CondConv(cin, w, n_cond, stride=2))
+            layers.append(CondResBlock(cin, w, n_cond) if arch == "resnet" else CondConv(cin, w, n_cond, stride=2))
             cin = w
         self.convs = nn.ModuleList(layers)
         self.feat = size // 2 ** len(widths)
@@ -89,14 +108,15 @@ class Decoder(nn.Module):
 
 
 class AutoEncoder(nn.Module):
-    def __init__(self, method="cvam", size=64, latent=128, n_objects=1, widths=(32, 64, 128, 256)):
+    def __init__(self, method="cvam", size=64, latent=128, n_objects=1, widths=(32, 64, 128, 256),
+                 encoder: str = "plain"):
         super().__init__()
         if method not in METHODS:
             raise ValueError(f"unknown method {method}")
         self.method = method
         n_cond = n_objects if method == "cvam" else 0
         variational = method in ("cvml", "cvam")
-        self.encoder = Encoder(size, latent, widths, n_cond, variational)
+        self.encoder = Encoder(size, latent, widths, n_cond, variational, arch=encoder)
         self.decoder = Decoder(size, latent, tuple(reversed(widths)), n_cond)
         self.n_cond = n_cond
 
