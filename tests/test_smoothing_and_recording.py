@@ -19,6 +19,13 @@ def test_smoother_moves_part_of_the_way_and_resets():
     assert rotation_error_deg(R, R1) < 1e-6
     R, t = s(2, R0, [0, 0, 500], 21)  # objects are independent
     assert rotation_error_deg(R, R0) < 1e-6
+    s = PoseSmoother(alpha=0.25, reset_deg=90.0)
+    s(1, R0, [0, 0, 500], 0)
+    R2 = Rotation.from_euler("z", 120, degrees=True).as_matrix()
+    R, t = s(1, R2, [0, 0, 500], 1)  # a jump beyond reset_deg restarts, no averaging across it
+    assert rotation_error_deg(R, R2) < 1e-6
+    R, t = s(1, R2, [0, 0, 900], 2)  # so does a translation jump beyond reset_mm
+    np.testing.assert_allclose(t, [0, 0, 900])
     R, t = PoseSmoother(alpha=1.0)(1, R1, [1, 2, 3], 0)
     assert rotation_error_deg(R, R1) < 1e-6
     with pytest.raises(UserError):

@@ -18,7 +18,6 @@ from pathlib import Path
 
 import numpy as np
 
-from .bundle import open_bundle
 from .crops import CropSet, build_training_crops, train_val_split
 from .errors import UserError
 from .geometry import (axis_angle_from_matrix, box_offset_of_centre, centre_from_box_offset, matrix_from_axis_angle,
@@ -65,8 +64,11 @@ def ablate(model_dir, data_dir, json_path=None, mlp_minutes: float = 1.0, max_tr
     b = est.bundle
     size = est.size
     cache = Path(model_dir).parent / (Path(model_dir).name + ".work") / f"crops_{size}_seed{seed}_all.npz"
-    cs = CropSet.load(cache) if cache.is_file() else build_training_crops(data_dir, size, seed=seed)
-    log(f"{len(cs)} crops ({'cached by training' if cache.is_file() else 'cut now'})")
+    trained_on = b.manifest.get("training", {}).get("data")
+    same = trained_on is not None and Path(trained_on).resolve() == Path(data_dir).resolve()
+    use_cache = same and cache.is_file()  # training's own crops of this very split
+    cs = CropSet.load(cache) if use_cache else build_training_crops(data_dir, size, seed=seed)
+    log(f"{len(cs)} crops ({'cached by training' if use_cache else 'cut now'})")
     unknown = sorted(set(np.unique(cs.obj_id).tolist()) - set(est.obj_ids))
     if unknown:
         raise UserError(f"{data_dir}: objects {unknown} are not in the bundle {model_dir}")

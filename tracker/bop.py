@@ -145,6 +145,9 @@ class VideoFrames:
         self.next = index + 1
         return bgr
 
+    def close(self):
+        self.cap.release()
+
 
 @dataclass
 class Scene:
@@ -175,6 +178,10 @@ class Scene:
                 raise UserError(f"unreadable image: {p}")
         return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
+    def close(self):
+        if self.video is not None:
+            self.video.close()
+
     def image_size(self, im_id: int) -> tuple[int, int]:
         """(width, height) of an image."""
         if self.video is None:
@@ -187,6 +194,13 @@ class Scene:
     @property
     def has_gt_info(self) -> bool:
         return (self.root / "scene_gt_info.json").is_file()
+
+
+def is_scene_dir(root) -> bool:
+    """A BOP scene: scene_camera.json beside rgb/ or the frames as one video."""
+    root = Path(root)
+    return (root / "scene_camera.json").is_file() and (
+        (root / "rgb").is_dir() or any((root / v).is_file() for v in SCENE_VIDEOS))
 
 
 def load_scene(root, require_gt: bool = False) -> Scene:

@@ -81,6 +81,16 @@ class Bundle:
         return self.manifest["objects"]
 
 
+def update_manifest(bundle_dir, change) -> dict:
+    """Verify a bundle, let ``change(manifest)`` edit its manifest (files already written into
+    the folder), then re-hash every file. Returns the new manifest."""
+    b = open_bundle(bundle_dir)
+    manifest = {k: v for k, v in b.manifest.items() if k not in ("files", "format")}
+    change(manifest)
+    write_manifest(b.root, manifest)
+    return read_verified_manifest(b.root)
+
+
 def open_bundle(bundle_dir) -> Bundle:
     d = Path(bundle_dir)
     return Bundle(d, read_verified_manifest(d))

@@ -133,7 +133,8 @@ def cmd_train_detector(args) -> int:
                        input_h=args.input[1], batch=args.batch, seed=args.seed, max_images=args.max_images,
                        command="app.py " + " ".join(sys.argv[1:]))
     v = d["training"]["validation_synthetic"]
-    print(f"detector added to {args.model}: synthetic validation AP {v['ap']:.3f}, AP50 {v['ap50']:.3f}")
+    from .report import fmt_num
+    print(f"detector added to {args.model}: synthetic validation AP {fmt_num(v['ap'])}, AP50 {fmt_num(v['ap50'])}")
     return 0
 
 
@@ -183,7 +184,8 @@ def cmd_eval(args) -> int:
               f"{v['te_median_mm'] if v['te_median_mm'] is not None else float('nan'):7.1f}")
     d = m.get("detection")
     if d:
-        print(f"detector: AP {d['ap']:.3f}, AP50 {d['ap50']:.3f}, recall50 {d['recall50']:.3f}, "
+        from .report import fmt_num
+        print(f"detector: AP {fmt_num(d['ap'])}, AP50 {fmt_num(d['ap50'])}, recall50 {fmt_num(d['recall50'])}, "
               f"{d['ms_per_image_median']:.1f} ms/image (median)")
         print(f"{'obj':>5} {'AP':>6} {'AP50':>6} {'R50':>6}")
         for k, v in sorted(d["per_object"].items(), key=lambda kv: int(kv[0])):

@@ -51,11 +51,11 @@ class CropSet:
             return cls(**{f: z[f] for f in cls.__dataclass_fields__})
 
 
-def train_val_split(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """(train, validation) indices of ``n`` crops, a tenth for validation: the one split that
-    training and the ablations use."""
+def train_val_split(n: int, seed: int = 0, parts: int = 10) -> tuple[np.ndarray, np.ndarray]:
+    """(train, validation) indices of ``n`` samples, one of ``parts`` for validation: the one
+    split that training (autoencoder, detector) and the ablations use."""
     perm = np.random.default_rng(seed).permutation(n)
-    n_va = max(1, n // 10)
+    n_va = max(1, n // parts)
     return np.sort(perm[n_va:]), np.sort(perm[:n_va])
 
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .detector import iou_matrix
+from .geometry import iou_matrix
 
 IOU_THRESHOLDS = np.round(np.arange(0.5, 0.951, 0.05), 2)
 RECALL_POINTS = np.linspace(0, 1, 101)
@@ -43,15 +43,18 @@ def detection_ap(detections, ground_truth, classes, ignore=None) -> dict:
         aps, recs = [], []
         for thr in IOU_THRESHOLDS:
             used = [np.zeros(len(g), bool) for g in gt]
+            used_ig = [np.zeros(len(g), bool) for g in ig]  # an ignored instance absorbs one detection
             hits, keep = [], []
             for i, s, b in dets:
                 ious = iou_matrix(b[None], gt[i])[0] if len(gt[i]) else np.zeros(0)
                 ious = np.where(used[i], -1, ious)
+                iig = np.where(used_ig[i], -1, iou_matrix(b[None], ig[i])[0]) if len(ig[i]) else np.zeros(0)
                 if len(ious) and ious.max() >= thr:
                     used[i][int(ious.argmax())] = True
                     hits.append(True)
                     keep.append(True)
-                elif len(ig[i]) and iou_matrix(b[None], ig[i]).max() >= thr:
+                elif len(iig) and iig.max() >= thr:
+                    used_ig[i][int(iig.argmax())] = True
                     keep.append(False)  # on an ignored instance: not counted
                     hits.append(False)
                 else:

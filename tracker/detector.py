@@ -9,13 +9,14 @@ and the sub-cell offset (x, y) of the centre in cells.
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 
 import cv2
 import numpy as np
 
 from .errors import UserError
 from .estimator import Detection
+from .geometry import clip_box, iou_matrix
 
 
 @dataclass
@@ -32,7 +33,6 @@ class DetectorSpec:
     max_dets: int = 32
     pad_value: int = 114
     file: str = "detector.onnx"
-    extra: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -45,23 +45,26 @@ class DetectorSpec:
 
 @dataclass
 class Letterbox:
-    scale: float
+    sx: float  # network-input pixels per frame pixel (x, y: the resized size is rounded)
+    sy: float
     pad_x: int
     pad_y: int
 
     def to_frame(self, boxes: np.ndarray) -> np.ndarray:
         """(N, 4) x, y, w, h in network-input pixels -> frame pixels."""
         b = np.asarray(boxes, np.float64).copy()
-        b[:, 0] = (b[:, 0] - self.pad_x) / self.scale
-        b[:, 1] = (b[:, 1] - self.pad_y) / self.scale
-        b[:, 2:] /= self.scale
+        b[:, 0] = (b[:, 0] - self.pad_x) / self.sx
+        b[:, 1] = (b[:, 1] - self.pad_y) / self.sy
+        b[:, 2] /= self.sx
+        b[:, 3] /= self.sy
         return b
 
     def to_input(self, boxes: np.ndarray) -> np.ndarray:
         b = np.asarray(boxes, np.float64).copy()
-        b[:, 0] = b[:, 0] * self.scale + self.pad_x
-        b[:, 1] = b[:, 1] * self.scale + self.pad_y
-        b[:, 2:] *= self.scale
+        b[:, 0] = b[:, 0] * self.sx + self.pad_x
+        b[:, 1] = b[:, 1] * self.sy + self.pad_y
+        b[:, 2] *= self.sx
+        b[:, 3] *= self.sy
         return b
 
 
@@ -75,7 +78,7 @@ def letterbox(image: np.ndarray, width: int, height: int, pad_value: int = 114) 
     out = np.full((height, width, 3), pad_value, np.uint8)
     interp = cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR
     out[py:py + nh, px:px + nw] = cv2.resize(image, (nw, nh), interpolation=interp) if (nw, nh) != (w, h) else image
-    return out, Letterbox(s, px, py)
+    return out, Letterbox(nw / w, nh / h, px, py)
 
 
 def normalise(images_u8: np.ndarray, spec: DetectorSpec) -> np.ndarray:
@@ -115,34 +118,16 @@ def decode(maps: np.ndarray, spec: DetectorSpec, lb: Letterbox | None = None,
     if lb is not None:
         boxes = lb.to_frame(boxes)
     if frame_size is not None:
-        boxes = clip_boxes(boxes, *frame_size)
+        boxes = clip_box(boxes, *frame_size)
+    ok = (boxes[:, 2] > 1) & (boxes[:, 3] > 1)  # boxes clipped to nothing never take a slot
+    boxes, ci, sc = boxes[ok], ci[ok], sc[ok]
     out: list[Detection] = []
     for c in np.unique(ci):
         m = np.nonzero(ci == c)[0]
         keep = nms(boxes[m], sc[m], spec.nms_iou)[:spec.max_per_class]
         out += [Detection(int(spec.classes[c]), boxes[m[j]], float(sc[m[j]])) for j in keep]
     out.sort(key=lambda d: -d.score)
-    return [d for d in out if d.box[2] > 1 and d.box[3] > 1][:spec.max_dets]
-
-
-def clip_boxes(boxes: np.ndarray, width: int, height: int) -> np.ndarray:
-    x0 = np.clip(boxes[:, 0], 0, width)
-    y0 = np.clip(boxes[:, 1], 0, height)
-    x1 = np.clip(boxes[:, 0] + boxes[:, 2], 0, width)
-    y1 = np.clip(boxes[:, 1] + boxes[:, 3], 0, height)
-    return np.stack([x0, y0, x1 - x0, y1 - y0], 1)
-
-
-def iou_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """IoU of (N, 4) and (M, 4) x, y, w, h boxes."""
-    a, b = np.asarray(a, np.float64).reshape(-1, 4), np.asarray(b, np.float64).reshape(-1, 4)
-    ax1, ay1 = a[:, 0] + a[:, 2], a[:, 1] + a[:, 3]
-    bx1, by1 = b[:, 0] + b[:, 2], b[:, 1] + b[:, 3]
-    iw = np.clip(np.minimum(ax1[:, None], bx1[None]) - np.maximum(a[:, None, 0], b[None, :, 0]), 0, None)
-    ih = np.clip(np.minimum(ay1[:, None], by1[None]) - np.maximum(a[:, None, 1], b[None, :, 1]), 0, None)
-    inter = iw * ih
-    union = (a[:, 2] * a[:, 3])[:, None] + (b[:, 2] * b[:, 3])[None] - inter
-    return np.where(union > 0, inter / np.maximum(union, 1e-12), 0.0)
+    return out[:spec.max_dets]
 
 
 def nms(boxes: np.ndarray, scores: np.ndarray, iou: float) -> list[int]:

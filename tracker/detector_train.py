@@ -8,18 +8,18 @@ time budget; a checkpoint is written every few minutes and training resumes from
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import sys
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 from tqdm import tqdm
 
 from .bop import load_scene
-from .crops import split_scene_dirs
+from .crops import split_scene_dirs, train_val_split
 from .detector import DetectorSpec, decode, letterbox, normalise
 from .errors import UserError
 
@@ -30,16 +30,18 @@ def load_detection_set(split_dir, spec: DetectorSpec, cache: Path | None = None,
     """Letterboxed images (N, H, W, 3) uint8 and per image an (n, 5) array [class, x, y, w, h]
     of visible boxes (visib >= 0.1) in network-input pixels."""
     if cache is not None and cache.is_file():
-        z = np.load(cache, allow_pickle=False)
-        boxes = np.split(z["boxes"], np.cumsum(z["counts"])[:-1])
-        log(f"loaded {len(z['images'])} images from {cache}")
-        return z["images"], boxes
+        with np.load(cache, allow_pickle=False) as z:
+            images, boxes = z["images"], np.split(z["boxes"], np.cumsum(z["counts"])[:-1])
+        log(f"loaded {len(images)} images from {cache}")
+        return images, boxes
     lut = {c: i for i, c in enumerate(spec.classes)}
     imgs, boxes = [], []
     scenes = split_scene_dirs(split_dir)
     total = sum(len(json.loads((s / "scene_camera.json").read_text())) for s in scenes)
     total = min(total, max_images or total)
     for sdir in scenes:
+        if len(imgs) >= total:
+            break
         scene = load_scene(sdir, require_gt=True)
         for im_id in tqdm(scene.im_ids, desc=f"images {sdir.name}", unit="img", leave=False):
             if len(imgs) >= total:
@@ -131,14 +133,13 @@ def augment_batch(x, boxes_list, rng: np.random.Generator, torch):
 
 def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32, input_w: int = 320,
                    input_h: int = 240, batch: int = 32, lr: float = 2e-3, seed: int = 0, max_images=None,
-                   val_fraction: float = 0.05, threads: int = 2, log=print, command: str | None = None) -> dict:
-    try:
-        import torch
-    except ImportError:
-        raise UserError("training needs the extras: pip install -e '.[train]'") from None
-    from .bundle import open_bundle, write_manifest
+                   val_parts: int = 20, threads: int = 2, log=print, command: str | None = None) -> dict:
+    from .train import _torch
+    torch = _torch()
+    from .bundle import open_bundle, update_manifest
     from .detection_metrics import detection_ap
     from .nets.detector import CenterNetLite, focal_loss
+    from .report import fmt_num
     bundle = open_bundle(bundle_dir)  # verified before anything is changed
     torch.set_num_threads(threads)
     torch.manual_seed(seed)
@@ -147,19 +148,21 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     work = root.parent / (root.name + ".work")
     work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    images, boxes = load_detection_set(data_dir, spec, work / f"det_{input_w}x{input_h}_{max_images or 'all'}.npz",
-                                       max_images, log)
+    # caches and checkpoints are keyed by the data, the classes and the network's shape
+    key = hashlib.sha1(json.dumps([str(Path(data_dir).resolve()), spec.classes, input_w, input_h, max_images,
+                                   width]).encode()).hexdigest()[:10]
+    images, boxes = load_detection_set(data_dir, spec, work / f"det_images_{key}.npz", max_images, log)
     n = len(images)
-    rng = np.random.default_rng(seed)
-    perm = rng.permutation(n)
-    n_va = max(1, int(n * val_fraction))
-    va, tr = np.sort(perm[:n_va]), perm[n_va:]
+    tr, va = train_val_split(n, seed, parts=val_parts)
+    if len(tr) < batch:
+        raise UserError(f"{data_dir}: {len(tr)} training images, fewer than a batch of {batch}; "
+                        f"make more with 'app.py synth' or pass a smaller --batch")
     C, S = len(spec.classes), spec.stride
     oh, ow = math.ceil(input_h / S), math.ceil(input_w / S)
     model = CenterNetLite(C, width)
     n_params = sum(p.numel() for p in model.parameters())
     opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
-    ckpt = work / "detector_ckpt.pt"
+    ckpt = work / f"detector_ckpt_{key}.pt"
     state = {"step": 0, "seconds": 0.0, "history": []}
     if ckpt.is_file():
         z = torch.load(ckpt, weights_only=False)
@@ -229,23 +232,24 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
                 dets.append(decode(m, spec))
                 gts.append([(spec.classes[int(c)], b) for c, *b in boxes[k]])
     ap = detection_ap(dets, gts, spec.classes)
-    log(f"synthetic validation: AP {ap['ap']:.3f}, AP50 {ap['ap50']:.3f}, recall50 {ap['recall50']:.3f}")
+    log(f"synthetic validation: AP {fmt_num(ap['ap'])}, AP50 {fmt_num(ap['ap50'])}, recall50 {fmt_num(ap['recall50'])}")
 
     path = root / spec.file
     diff = export_detector(model, spec, path, normalise(images[va[:4]], spec))
     log(f"{spec.file}: max |onnx - torch| = {diff:.2e}")
     if diff > 1e-4:
         raise UserError(f"exported detector differs from torch by {diff:.2e} (> 1e-4)")
-    manifest = {k: v for k, v in bundle.manifest.items() if k not in ("files", "format")}
-    manifest["artefacts"] = dict(manifest.get("artefacts", {}), detector=spec.file)
     d = spec.to_dict()
     d["training"] = {"data": str(data_dir), "images": len(tr), "validation": len(va), "parameters": n_params,
                      "width": width, "steps": state["step"], "batch": batch,
                      "minutes": round(state["seconds"] / 60, 1), "seed": seed, "onnx_max_abs_diff": diff,
                      "validation_synthetic": ap, "command": command or "app.py " + " ".join(sys.argv[1:]),
                      "loss_history": state["history"][-20:]}
-    manifest["detector"] = d
-    write_manifest(root, manifest)
+
+    def change(manifest):
+        manifest["artefacts"] = dict(manifest.get("artefacts", {}), detector=spec.file)
+        manifest["detector"] = d
+    update_manifest(root, change)
     log(f"added {spec.file} to {root} ({path.stat().st_size / 1e6:.1f} MB); {(time.perf_counter() - t0) / 60:.1f} min")
     return d
 

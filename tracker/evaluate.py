@@ -28,6 +28,16 @@ def gt_boxes(scene, models, im_ids) -> tuple[dict[int, list], str]:
     return {i: [(np.asarray(v.bbox_visib, float), v.visib_fract) for v in recs[i]] for i in im_ids}, VISIB_RENDERED
 
 
+def gt_instances_with_boxes(gts, boxes, min_visib: float = 0.0, below: bool = False) -> list[tuple]:
+    """(obj_id, box, visible fraction) of the ground-truth instances of one image whose visible
+    box is not empty, at least ``min_visib`` visible (or, with ``below``, less than it)."""
+    out = []
+    for g, (b, v) in zip(gts, boxes):
+        if b[2] > 1 and b[3] > 1 and ((v < min_visib) if below else (v >= min_visib)):
+            out.append((g.obj_id, b, v))
+    return out
+
+
 def evaluate(model_dir, scene_dir, json_path=None, boxes: str = "gt", mode: str = "regression",
              bop_csv=None, max_frames: int | None = None, progress: bool = True) -> dict:
     from .meshes import load_models
@@ -59,7 +69,7 @@ def evaluate(model_dir, scene_dir, json_path=None, boxes: str = "gt", mode: str 
             det_ms.append(1000 * (time.perf_counter() - t0))
             all_dets.append(dets)
         else:
-            dets = [Detection(g.obj_id, b) for g, (b, v) in zip(scene.gt[im_id], box_of[im_id]) if b[2] > 1 and b[3] > 1]
+            dets = [Detection(o, b) for o, b, _ in gt_instances_with_boxes(scene.gt[im_id], box_of[im_id])]
         poses = est.estimate(img, scene.K(im_id), dets, mode=mode)
         dt = time.perf_counter() - t0
         t_all += dt
@@ -73,12 +83,12 @@ def evaluate(model_dir, scene_dir, json_path=None, boxes: str = "gt", mode: str 
                       scene_id=0, ms_per_image=1000 * t_all / len(im_ids))
     if detector is not None:
         from .detection_metrics import detection_ap
-        gts = [[(g.obj_id, b) for g, (b, v) in zip(scene.gt[i], box_of[i]) if v >= 0.1 and b[2] > 1] for i in im_ids]
-        ign = [[(g.obj_id, b) for g, (b, v) in zip(scene.gt[i], box_of[i]) if v < 0.1 and b[2] > 1] for i in im_ids]
+        gts = [[(o, b) for o, b, _ in gt_instances_with_boxes(scene.gt[i], box_of[i], 0.1)] for i in im_ids]
+        ign = [[(o, b) for o, b, _ in gt_instances_with_boxes(scene.gt[i], box_of[i], 0.1, below=True)] for i in im_ids]
         m["detection"] = detection_ap(all_dets, gts, est.obj_ids, ignore=ign)
         m["detection"]["ms_per_image_median"] = float(np.median(det_ms))
         m["detection"]["visibility_source"] = m.get("visibility_source")
-    m.update({"boxes": boxes, "mode": mode, "model": str(model_dir), "data": str(scene_dir),
+    m.update({"boxes": boxes, "mode": mode, "model": str(model_dir), "data": str(scene_dir), "max_frames": max_frames,
               "bop_csv": str(bop_csv), "method": name})
     if json_path:
         write_metrics_json(json_path, m)

@@ -6,7 +6,7 @@ import json
 import os
 import signal
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -68,9 +68,10 @@ class _Stopper:
 
 def _gt_detections(frame, boxes_of, known) -> list[Detection]:
     """Ground-truth visible boxes of the bundle's objects that are at least 10 % visible."""
+    from .evaluate import gt_instances_with_boxes
     if boxes_of is not None and frame.index in boxes_of:
-        return [Detection(g.obj_id, b) for g, (b, v) in zip(frame.gt, boxes_of[frame.index])
-                if v >= 0.1 and b[2] > 1 and g.obj_id in known]
+        return [Detection(o, b) for o, b, _ in gt_instances_with_boxes(frame.gt, boxes_of[frame.index], 0.1)
+                if o in known]
     return []
 
 
@@ -79,20 +80,26 @@ class BoxSchedule:
     the previous frame's poses, the model points projected at that pose. The detector runs on
     every ``every``-th frame and on any frame after one where an object was lost."""
 
-    def __init__(self, detector, every: int, points: dict[int, np.ndarray]):
-        self.detector, self.every, self.points = detector, max(1, int(every)), points
-        self.since = 0
-        self.prev: list = []
-        self.lost = True
+    def __init__(self, detector, every: int, points: dict[int, np.ndarray], obj_ids=None):
+        if int(every) < 1:
+            raise UserError(f"--detect-every must be >= 1, got {every}")
+        self.detector, self.every, self.points = detector, int(every), points
+        self.obj_ids = set(obj_ids) if obj_ids else None
         self.detector_frames = 0
+        self.reset()
+
+    def reset(self):
+        """Forget the previous frame (a new shot: the next frame runs the detector)."""
+        self.since, self.prev, self.lost, self.n_expected = 0, [], True, 0
 
     def boxes(self, rgb, K) -> tuple[list[Detection], str]:
+        """This frame's boxes and where they came from ('detector' or 'pose')."""
         from .geometry import box_from_points, clip_box, project
         h, w = rgb.shape[:2]
         if self.lost or self.since + 1 >= self.every or not self.prev:
             self.since = 0
             self.detector_frames += 1
-            dets = self.detector(rgb)
+            dets = [d for d in self.detector(rgb) if self.obj_ids is None or d.obj_id in self.obj_ids]
             self.n_expected = len(dets)
             return dets, "detector"
         self.since += 1
@@ -104,17 +111,18 @@ class BoxSchedule:
         return out, "pose"
 
     def update(self, poses):
-        self.lost = len(poses) < getattr(self, "n_expected", 0)
-        self.prev = poses
+        """The poses estimated from this frame's boxes (unsmoothed)."""
+        self.lost = len(poses) < self.n_expected
+        self.prev = list(poses)
 
 
 def run_track(cfg: TrackConfig, log=print) -> dict:
     from .meshes import load_mesh
     from .overlay import blend, colour, draw_axes, draw_box
-    from .sources import BopSceneSource, open_source
+    from .sources import BopSceneSource, is_camera, open_source
     est = PoseEstimator(cfg.model)
     names = {o["id"]: o["name"] for o in est.bundle.objects}
-    if cfg.loop and (str(cfg.source).isdigit() or str(cfg.source).startswith("/dev/video")):
+    if cfg.loop and is_camera(cfg.source):
         raise UserError("--loop replays recordings; a camera cannot be looped")
     src = open_source(cfg.source, max_frames=None if cfg.loop else cfg.max_frames, realtime=cfg.realtime)
     out = Path(cfg.out)
@@ -139,7 +147,7 @@ def run_track(cfg: TrackConfig, log=print) -> dict:
     if boxes_of is None and "detector" in est.bundle.manifest.get("artefacts", {}):
         from .detector import Detector
         pts = {o: np.asarray(m.vertices)[:: max(1, len(m.vertices) // 500)] for o, m in meshes.items()}
-        schedule = BoxSchedule(Detector(est.bundle, threads=cfg.detector_threads), cfg.detect_every, pts)
+        schedule = BoxSchedule(Detector(est.bundle, threads=cfg.detector_threads), cfg.detect_every, pts, cfg.obj_ids)
     smoother = None
     if cfg.smooth is not None:
         from .smoothing import PoseSmoother
@@ -174,6 +182,10 @@ def run_track(cfg: TrackConfig, log=print) -> dict:
                     src = open_source(cfg.source, realtime=cfg.realtime)
                     it = iter(src)
                     frame = next(it)
+                    if schedule is not None:  # the replay starts again: no pose carries over the cut
+                        schedule.reset()
+                    if smoother is not None:
+                        smoother.reset()
                 index = n if cfg.loop else frame.index
                 ms = {"capture": 1000 * (time.perf_counter() - t0)}
                 t = time.perf_counter()
@@ -197,9 +209,8 @@ def run_track(cfg: TrackConfig, log=print) -> dict:
                 poses = est.estimate(rgb, K, dets, timings=ms) if dets else []
                 if schedule is not None:
                     schedule.update(poses)
-                if smoother is not None:
-                    for p in poses:
-                        p.R, p.t = smoother(p.obj_id, p.R, p.t, n)
+                if smoother is not None:  # new objects: the schedule keeps the raw poses
+                    poses = [replace(p, R=r, t=tt) for p in poses for r, tt in [smoother(p.obj_id, p.R, p.t, n)]]
                 ms.setdefault("encode", 0.0)  # crops + encoder
                 ms.setdefault("regress", 0.0)
                 t = time.perf_counter()

@@ -17,7 +17,7 @@ from tqdm import tqdm
 
 from .bop import load_scene
 from .errors import UserError
-from .geometry import box_from_points, clip_box, project
+from .geometry import box_from_points, clip_box, iou_matrix, project
 from .meshes import load_models
 from .overlay import LMO_NAMES, blend, colour, draw_axes, draw_box, draw_contour, montage
 from .render import Renderer
@@ -34,16 +34,6 @@ class PreviewSummary:
     ms_per_frame_render: float
     montage: str
     frames_dir: str
-
-
-def box_iou(a, b) -> float:
-    ax0, ay0, aw, ah = a
-    bx0, by0, bw, bh = b
-    iw = max(0.0, min(ax0 + aw, bx0 + bw) - max(ax0, bx0))
-    ih = max(0.0, min(ay0 + ah, by0 + bh) - max(ay0, by0))
-    inter = iw * ih
-    union = aw * ah + bw * bh - inter
-    return inter / union if union > 0 else 0.0
 
 
 def render_gt_overlays(scene_dir, models_dir, out_dir, max_frames: int | None = None,
@@ -79,7 +69,7 @@ def render_gt_overlays(scene_dir, models_dir, out_dir, max_frames: int | None = 
                 if vbox[2] * vbox[3] > 0:  # some of it is in view: compare the visible parts
                     rbox = ((xs.min(), ys.min(), xs.max() - xs.min() + 1, ys.max() - ys.min() + 1)
                             if len(xs) else (0, 0, 0, 0))
-                    ious.append(box_iou(vbox, rbox))
+                    ious.append(float(iou_matrix(vbox, rbox)[0, 0]))
                 c = project(np.zeros((1, 3)), K, g.R, g.t)[0]
                 in_image += int(0 <= c[0] < w and 0 <= c[1] < h)
                 col = colour(g.obj_id)

@@ -3,7 +3,7 @@ order) beside its ``scene_camera.json`` / ``scene_gt.json``. ``load_scene`` read
 folder like any BOP scene, so the demo, ``eval`` and ``score`` all run on it."""
 from __future__ import annotations
 
-import shutil
+import json
 from pathlib import Path
 
 import cv2
@@ -24,16 +24,22 @@ def write_scene_video(scene_dir, out_dir, quality: int = 95, fps: float = 10.0) 
                              [cv2.VIDEOWRITER_PROP_QUALITY, quality])
     if not writer.isOpened():
         raise UserError(f"{path}: OpenCV cannot write an MJPEG video here")
-    for im_id in scene.im_ids:
-        rgb = scene.read_rgb(im_id)
-        if rgb.shape[:2] != (h, w):
-            raise UserError(f"{scene.root}: image {im_id} is {rgb.shape[1]}x{rgb.shape[0]}, not {w}x{h}")
-        writer.write(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
-    writer.release()
+    try:
+        for im_id in scene.im_ids:
+            rgb = scene.read_rgb(im_id)
+            if rgb.shape[:2] != (h, w):
+                raise UserError(f"{scene.root}: image {im_id} is {rgb.shape[1]}x{rgb.shape[0]}, not {w}x{h}")
+            writer.write(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    finally:
+        writer.release()
+    keep = {str(i) for i in scene.im_ids}  # the video holds exactly these frames
     for name in ("scene_camera.json", "scene_gt.json", "scene_gt_info.json"):
         if (scene.root / name).is_file():
-            shutil.copy(scene.root / name, out / name)
+            d = json.loads((scene.root / name).read_text())
+            (out / name).write_text(json.dumps({k: v for k, v in d.items() if k in keep}))
     packed = load_scene(out)
     psnr = [cv2.PSNR(scene.read_rgb(i), packed.read_rgb(i)) for i in scene.im_ids]
+    packed.close()
+    scene.close()
     return {"video": str(path), "frames": len(psnr), "bytes": path.stat().st_size,
             "psnr_min": float(np.min(psnr)), "psnr_median": float(np.median(psnr))}

@@ -16,8 +16,6 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import UserError
-
 # the thesis's figures (../shared/METHOD.md)
 THESIS = {
     "table_5_3": {"AAE": {"ar_mssd": 0.095, "ar_mspd": 0.254}, "CVML-Pose": {"ar_mssd": 0.347, "ar_mspd": 0.714},
@@ -31,13 +29,14 @@ THESIS = {
 }
 
 
-def _f(v, nd=3):
+def fmt_num(v, nd=3):
+    """A number for a table or a log line; None prints as a dash."""
     return "-" if v is None else f"{v:.{nd}f}"
 
 
 def _pose_row(label, m, thesis=None):
-    return (f"| {label} | {m['n_gt']} | {_f(m['add_recall'])} | {_f(m['ar_mssd'])} | {_f(m['ar_mspd'])} | "
-            f"{_f(m['re_median_deg'], 1)} | {_f(m['te_median_mm'], 1)} | {thesis or ''} |")
+    return (f"| {label} | {m['n_gt']} | {fmt_num(m['add_recall'])} | {fmt_num(m['ar_mssd'])} | {fmt_num(m['ar_mspd'])} | "
+            f"{fmt_num(m['re_median_deg'], 1)} | {fmt_num(m['te_median_mm'], 1)} | {thesis or ''} |")
 
 
 POSE_HEAD = ("| | instances | ADD(I) | AR_MSSD | AR_MSPD | RE median (deg) | TE median (mm) | thesis |\n"
@@ -51,7 +50,7 @@ def latent_tsne(model_dir, scene_dir, seed: int = 0, max_frames=None):
 
     from .bop import load_scene
     from .estimator import Detection, PoseEstimator
-    from .evaluate import gt_boxes
+    from .evaluate import gt_boxes, gt_instances_with_boxes
     from .meshes import load_models
     est = PoseEstimator(model_dir)
     scene = load_scene(scene_dir, require_gt=True)
@@ -60,7 +59,7 @@ def latent_tsne(model_dir, scene_dir, seed: int = 0, max_frames=None):
     boxes, _ = gt_boxes(scene, models, ids)
     mus, objs = [], []
     for i in ids:
-        dets = [Detection(g.obj_id, b) for g, (b, v) in zip(scene.gt[i], boxes[i]) if v >= 0.1 and b[2] > 1]
+        dets = [Detection(o, b) for o, b, _ in gt_instances_with_boxes(scene.gt[i], boxes[i], 0.1)]
         if dets:
             mus.append(est.encode(est.crops(scene.read_rgb(i), [d.box for d in dets]), [d.obj_id for d in dets]))
             objs += [d.obj_id for d in dets]
@@ -88,8 +87,10 @@ def build_report(model_dir, scene_dir, out_dir, ablate_json=None, reuse: bool = 
     ev = {}
     for boxes, mode in runs:
         p = out / f"eval_{boxes}_{mode}.json"
-        if reuse and p.is_file():
-            ev[boxes, mode] = json.loads(p.read_text())
+        old = json.loads(p.read_text()) if reuse and p.is_file() else None
+        if old and old.get("data") == str(scene_dir) and old.get("model") == str(model_dir) \
+                and old.get("max_frames") == max_frames:
+            ev[boxes, mode] = old
         else:
             log(f"evaluating: {boxes} boxes, {mode}")
             ev[boxes, mode] = evaluate(model_dir, scene_dir, p, boxes=boxes, mode=mode, bop_csv=out / f"{boxes}-{mode}.csv",
@@ -116,11 +117,11 @@ def build_report(model_dir, scene_dir, out_dir, ablate_json=None, reuse: bool = 
                _pose_row("our detector", d, f"ADD(I) {THESIS['table_5_7']['detector']['add_recall']:.3f} (Mask R-CNN)"),
                _pose_row("our detector, AAE", ev["detector", "aae"], "AR_MSPD 0.254 (Table 5.3)"), ""]
         det = d["detection"]
-        md += [f"Detector on these frames: AP {_f(det['ap'])}, AP50 {_f(det['ap50'])}, recall at IoU 0.5 "
-               f"{_f(det['recall50'])}, {det['ms_per_image_median']:.1f} ms per frame (median, 2 threads). "
+        md += [f"Detector on these frames: AP {fmt_num(det['ap'])}, AP50 {fmt_num(det['ap50'])}, recall at IoU 0.5 "
+               f"{fmt_num(det['recall50'])}, {det['ms_per_image_median']:.1f} ms per frame (median, 2 threads). "
                f"Thesis: Mask R-CNN AP 0.566 (IoU .5:.95).", "",
                "| object | AP | AP50 | recall50 | instances |", "|---|---|---|---|---|"]
-        md += [f"| {names.get(int(k), k)} | {_f(v['ap'])} | {_f(v['ap50'])} | {_f(v['recall50'])} | {v['n_gt']} |"
+        md += [f"| {names.get(int(k), k)} | {fmt_num(v['ap'])} | {fmt_num(v['ap50'])} | {fmt_num(v['recall50'])} | {v['n_gt']} |"
                for k, v in sorted(det["per_object"].items(), key=lambda kv: int(kv[0])) if v["n_gt"]]
         md.append("")
     else:
@@ -128,8 +129,8 @@ def build_report(model_dir, scene_dir, out_dir, ablate_json=None, reuse: bool = 
 
     md += ["## Per object (latent regression, ground-truth boxes)", "",
            "| object | ADD(I) | AR_MSSD | AR_MSPD | RE median | TE median |", "|---|---|---|---|---|---|"]
-    md += [f"| {names.get(int(k), k)} | {_f(v['add_recall'])} | {_f(v['ar_mssd'])} | {_f(v['ar_mspd'])} | "
-           f"{_f(v['re_median_deg'], 1)} | {_f(v['te_median_mm'], 1)} |"
+    md += [f"| {names.get(int(k), k)} | {fmt_num(v['add_recall'])} | {fmt_num(v['ar_mssd'])} | {fmt_num(v['ar_mspd'])} | "
+           f"{fmt_num(v['re_median_deg'], 1)} | {fmt_num(v['te_median_mm'], 1)} |"
            for k, v in sorted(g["per_object"].items(), key=lambda kv: int(kv[0])) if v.get("n_gt")]
     md.append("")
 
@@ -149,7 +150,7 @@ def build_report(model_dir, scene_dir, out_dir, ablate_json=None, reuse: bool = 
     save_png(out / "recall_vs_visibility.png", img)
     md += ["## Figure 5.3: recall against visibility", "", "![recall vs visibility](recall_vs_visibility.png)", "",
            "| visible fraction | instances | ADD(I) | AR_MSPD |", "|---|---|---|---|"]
-    md += [f"| {b['visib_min']:.1f}-{b['visib_max']:.1f} | {b['n_gt']} | {_f(b['add_recall'])} | {_f(b['ar_mspd'])} |"
+    md += [f"| {b['visib_min']:.1f}-{b['visib_max']:.1f} | {b['n_gt']} | {fmt_num(b['add_recall'])} | {fmt_num(b['ar_mspd'])} |"
            for b in g["recall_by_visibility"]]
     md += ["", "Series, top to bottom in the legend order: " + ", ".join(s.label for s in series) + ".", ""]
 
@@ -161,16 +162,16 @@ def build_report(model_dir, scene_dir, out_dir, ablate_json=None, reuse: bool = 
                f"{a['note']}; each MLP trained for at most {a['mlp_minutes']} min.", "",
                "**Table 4.1, rotation** (ADD(I) with the true translation)", "",
                "| regressor | ADD(I) | RE median (deg) | thesis ADD(I) |", "|---|---|---|---|"]
-        md += [f"| {r['method']} | {_f(r['add_recall_true_t'])} | {_f(r['re_median_deg'], 1)} | "
-               f"{_f(THESIS['table_4_1'].get(r['method']))} |" for r in a["table_4_1"]]
+        md += [f"| {r['method']} | {fmt_num(r['add_recall_true_t'])} | {fmt_num(r['re_median_deg'], 1)} | "
+               f"{fmt_num(THESIS['table_4_1'].get(r['method']))} |" for r in a["table_4_1"]]
         md += ["", "**Table 4.2a, centre**", "", "| regressor | mean error (px) | median (px) | thesis (px) |",
                "|---|---|---|---|"]
-        md += [f"| {r['method']} | {_f(r['centre_err_mean_px'], 2)} | {_f(r['centre_err_median_px'], 2)} | "
-               f"{_f(THESIS['table_4_2a'].get(r['method']), 2)} |" for r in a["table_4_2a"]]
+        md += [f"| {r['method']} | {fmt_num(r['centre_err_mean_px'], 2)} | {fmt_num(r['centre_err_median_px'], 2)} | "
+               f"{fmt_num(THESIS['table_4_2a'].get(r['method']), 2)} |" for r in a["table_4_2a"]]
         md += ["", "**Table 4.2b, distance**", "", "| regressor | mean abs Tz error (mm) | median (mm) | thesis (mm) |",
                "|---|---|---|---|"]
-        md += [f"| {r['method']} | {_f(r['tz_err_mean_mm'], 1)} | {_f(r['tz_err_median_mm'], 1)} | "
-               f"{_f(THESIS['table_4_2b'].get(r['method']), 1)} |" for r in a["table_4_2b"]]
+        md += [f"| {r['method']} | {fmt_num(r['tz_err_mean_mm'], 1)} | {fmt_num(r['tz_err_median_mm'], 1)} | "
+               f"{fmt_num(THESIS['table_4_2b'].get(r['method']), 1)} |" for r in a["table_4_2b"]]
         md.append("")
     else:
         md += ["Not run: pass `--ablate FILE` from `app.py ablate`.", ""]

@@ -31,6 +31,9 @@ class PoseSmoother:
         self.alpha, self.max_gap, self.reset_deg, self.reset_mm = alpha, max_gap, reset_deg, reset_mm
         self.state: dict[int, _State] = {}
 
+    def reset(self):
+        self.state.clear()
+
     def __call__(self, obj_id: int, R: np.ndarray, t: np.ndarray, frame: int) -> tuple[np.ndarray, np.ndarray]:
         s = self.state.get(obj_id)
         R, t = np.asarray(R, float), np.asarray(t, float).reshape(3)

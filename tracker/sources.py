@@ -11,7 +11,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .bop import IMAGE_EXTS, SCENE_VIDEOS, GtInstance, load_scene
+from .bop import IMAGE_EXTS, GtInstance, is_scene_dir, load_scene
 from .errors import UserError
 
 
@@ -55,6 +55,9 @@ class BopSceneSource(Source):
             rgb = self.scene.read_rgb(im_id)
             gt = self.scene.gt.get(im_id, []) if self.scene.gt else []
             yield Frame(im_id, time.monotonic(), rgb, self.scene.K(im_id), gt)
+
+    def close(self):
+        self.scene.close()
 
 
 class ImageFolderSource(Source):
@@ -184,14 +187,20 @@ def _sleep_until(t):
         time.sleep(d)
 
 
+def is_camera(src) -> bool:
+    """A camera index or a /dev/videoN path (anything else is a recording)."""
+    s = str(src)
+    return s.isdigit() or s.startswith("/dev/video")
+
+
 def open_source(src: str, max_frames=None, realtime=False, width=None, height=None, fps=None) -> Source:
     """Camera index or /dev/videoN, video file, image folder, or BOP scene folder."""
     s = str(src)
-    if s.isdigit() or s.startswith("/dev/video"):
+    if is_camera(s):
         return CameraSource(int(s) if s.isdigit() else s, width, height, fps, max_frames)
     p = Path(s)
     if p.is_dir():
-        if (p / "scene_camera.json").is_file() and ((p / "rgb").is_dir() or any((p / v).is_file() for v in SCENE_VIDEOS)):
+        if is_scene_dir(p):
             return BopSceneSource(p, max_frames, realtime)
         return ImageFolderSource(p, max_frames, realtime)
     if p.is_file():

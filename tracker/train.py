@@ -117,7 +117,7 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
     n_obj = len(obj_ids)
 
     rng = np.random.default_rng(seed)
-    rng.permutation(len(cs))  # (keeps the codebook's draws below as they were)
+    rng.permutation(len(cs))  # advances the generator as before, so the codebook draws below stay reproducible
     tr, va = train_val_split(len(cs), seed)
     c_all = onehot(idx, n_obj)
 
