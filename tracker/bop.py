@@ -192,6 +192,19 @@ class Scene:
         return self.read_rgb(im_id).shape[1::-1]
 
     @property
+    def has_depth(self) -> bool:
+        d = self.root / "depth"
+        return d.is_dir() and all((d / f"{i:06d}.png").is_file() for i in self.images)
+
+    def read_depth(self, im_id: int) -> np.ndarray:
+        """The depth image in mm (float; 0 = no reading): depth/NNNNNN.png x depth_scale."""
+        p = self.root / "depth" / f"{im_id:06d}.png"
+        raw = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+        if raw is None or raw.ndim != 2:
+            raise UserError(f"unreadable depth image (expected a one-channel PNG): {p}")
+        return raw.astype(np.float64) * float(self.cameras[im_id].get("depth_scale", 1.0))
+
+    @property
     def has_gt_info(self) -> bool:
         return (self.root / "scene_gt_info.json").is_file()
 

@@ -92,7 +92,7 @@ def cmd_synth(args) -> int:
     from .synth.preview import preview
     obj_ids = [int(x) for x in args.obj_ids.split(",")] if args.obj_ids else None
     cfg = SynthConfig(models_dir=str(args.models), backgrounds_dir=str(args.backgrounds or shared_data() / "backgrounds"),
-                      seed=args.seed, prior=args.prior, obj_ids=obj_ids, mesh_faces=args.mesh_faces)
+                      seed=args.seed, prior=args.prior, obj_ids=obj_ids, mesh_faces=args.mesh_faces, depth=args.depth)
     rep = generate(cfg, args.out, args.images, workers=args.workers, command="app.py " + " ".join(sys.argv[1:]))
     state = "INTERRUPTED after" if rep.interrupted else "wrote"
     print(f"{state} {rep.images} images, {rep.instances} instances ({rep.crops_visib_ge_0_1} with visib >= 0.1) "
@@ -328,6 +328,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="pose prior: objects upright on a table (LM-O) or any orientation (hand-held)")
     s.add_argument("--obj-ids", help="comma-separated subset of the models' ids")
     s.add_argument("--workers", type=int, default=2, help="render processes")
+    s.add_argument("--depth", action="store_true", help="also write depth images (depth/, for VSD)")
     s.add_argument("--mesh-faces", type=int, default=None, metavar="N",
                    help="render the objects decimated to about N faces: faster on the CPU rasteriser, "
                         "slightly smoother colours (default: the full meshes)")

@@ -12,8 +12,10 @@ values) and returns one float:
 
 ``syms`` is an (S, 4, 4) array of symmetry transforms of the model (identity included),
 as :func:`tracker.bop.symmetry_transforms` returns it; symmetry ``S`` maps the GT pose to
-the equivalent pose ``(R_g S_R, R_g S_t + t_g)``. VSD is not here: it needs a depth image
-of the scene.
+the equivalent pose ``(R_g S_R, R_g S_t + t_g)``.
+
+:func:`vsd` (visible surface discrepancy) works on depth images: the scene's measured depth
+and the object rendered at both poses (the caller renders; this module is numpy only).
 """
 from __future__ import annotations
 
@@ -148,6 +150,45 @@ def re(R_e, R_g) -> float:
 def te(t_e, t_g) -> float:
     """Translation error: ||t_e - t_g|| (mm)."""
     return float(translation_error(np.asarray(t_e).reshape(3), np.asarray(t_g).reshape(3)))
+
+
+# --------------------------------------------------------------------------- VSD
+
+
+def distance_image(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Depth (z, mm) -> distance from the camera centre along each pixel's ray (mm), as
+    bop_toolkit's ``depth_im_to_dist_im_fast``."""
+    h, w = depth.shape
+    xs = (np.arange(w) - K[0, 2]) / K[0, 0]
+    ys = (np.arange(h) - K[1, 2]) / K[1, 1]
+    return depth * np.sqrt(xs[None, :] ** 2 + ys[:, None] ** 2 + 1.0)
+
+
+def _visib_mask(d_test, d_model, delta):
+    """BOP19 visibility: rendered, and in front of the measured surface within ``delta``
+    (or where the sensor has no reading)."""
+    return ((d_model - d_test <= delta) | (d_test == 0)) & (d_model > 0)
+
+
+def vsd(depth_est: np.ndarray, depth_gt: np.ndarray, depth_test: np.ndarray, K: np.ndarray,
+        delta: float, taus, diameter: float | None = None) -> np.ndarray:
+    """Visible surface discrepancy (Hodan et al.; BOP19 variant with the step cost), one
+    value per misalignment tolerance in ``taus`` (mm, or fractions of ``diameter`` when it
+    is given). ``depth_est`` / ``depth_gt``: the object rendered alone at the estimated / GT
+    pose; ``depth_test``: the scene's depth image (all mm, 0 = no value)."""
+    d_test, d_gt, d_est = (distance_image(np.asarray(d, np.float64), K) for d in (depth_test, depth_gt, depth_est))
+    visib_gt = _visib_mask(d_test, d_gt, delta)
+    visib_est = _visib_mask(d_test, d_est, delta) | (visib_gt & (d_est > 0))
+    inter = visib_gt & visib_est
+    union_count = int((visib_gt | visib_est).sum())
+    taus = np.asarray(taus, np.float64).reshape(-1)
+    if union_count == 0:
+        return np.ones(len(taus))
+    dists = np.abs(d_gt[inter] - d_est[inter])
+    if diameter is not None:
+        dists = dists / diameter
+    comp = union_count - int(inter.sum())
+    return np.array([((dists >= tau).sum() + comp) / union_count for tau in taus])
 
 
 # --------------------------------------------------------------------------- helpers

@@ -49,6 +49,9 @@ MSPD_THS = np.arange(5, 51, 5)           # pixels at 640 px width
 ADD_TH = 0.1                             # fraction of the diameter
 RETE_THS = (5.0, 50.0)                   # deg, mm
 VISIB_BINS = (0.1, 0.3, 0.5, 0.7, 0.9, 1.0)
+VSD_DELTA = 15.0                          # mm, BOP's tolerance for LM-O
+VSD_TAUS = np.arange(0.05, 0.51, 0.05)    # misalignment tolerances, fractions of the diameter
+VSD_THS = np.arange(0.05, 0.51, 0.05)     # correctness thresholds on the VSD error
 VISIB_WINDOW = 128  # px: the window each instance is rendered alone into (as synth's clean targets)
 VISIB_FROM_GT_INFO = "scene_gt_info"
 VISIB_RENDERED = "rendered from known objects (upper bound: unknown occluders missed)"
@@ -216,13 +219,23 @@ class _GtRecord:
     rete_hit: bool
     re: float | None       # of the estimate matched without threshold (None: no estimate)
     te: float | None
+    vsd_hit: np.ndarray | None = None  # (len(VSD_TAUS), len(VSD_THS)) bool, with depth only
 
 
-def _errors(est: list[Estimate], gts: list, obj: ObjectEval, K: np.ndarray, r: float) -> dict:
-    """All errors of ``est`` against ``gts`` (one object), each (n_est, n_gt, ·)."""
+def _errors(est: list[Estimate], gts: list, obj: ObjectEval, K: np.ndarray, r: float,
+            depth_test: np.ndarray | None = None, renderer=None) -> dict:
+    """All errors of ``est`` against ``gts`` (one object), each (n_est, n_gt, ·); VSD (one
+    value per tau) too when the scene's depth image and a depth renderer are given."""
     ne, ng = len(est), len(gts)
     out = {k: np.zeros((ne, ng, 1)) for k in ("mssd", "mspd", "add")}
     out["rete"] = np.zeros((ne, ng, 2))
+    if depth_test is not None:
+        out["vsd"] = np.ones((ne, ng, len(VSD_TAUS)))
+        d_gt = [renderer.render(K, [(obj.obj_id, g.R, g.t)], depth_only=True)[1] for g in gts]
+        for a, e in enumerate(est):
+            d_est = renderer.render(K, [(obj.obj_id, e.R, e.t)], depth_only=True)[1]
+            for b in range(ng):
+                out["vsd"][a, b] = metrics.vsd(d_est, d_gt[b], depth_test, K, VSD_DELTA, VSD_TAUS, obj.diameter)
     for a, e in enumerate(est):
         for b, g in enumerate(gts):
             per_sym = metrics.mssd_per_symmetry(e.R, e.t, g.R, g.t, obj.hull, obj.syms)
@@ -241,7 +254,7 @@ def _errors(est: list[Estimate], gts: list, obj: ObjectEval, K: np.ndarray, r: f
 def score_estimates(estimates: list[Estimate], scene: Scene, objects: dict[int, ObjectEval],
                     visib: dict[int, list[float]], image_width: int, im_ids=None,
                     visibility_source: str | None = None, ms_per_image: float | None = None,
-                    detection: dict | None = None) -> dict:
+                    detection: dict | None = None, depth_renderer=None) -> dict:
     """Metrics JSON (CONVENTIONS.md) of ``estimates`` on ``scene``'s images ``im_ids``.
 
     ``estimates`` must already be those of this scene (any scene_id); ``objects`` covers
@@ -273,7 +286,12 @@ def score_estimates(estimates: list[Estimate], scene: Scene, objects: dict[int, 
             # top-n by decreasing score; Python's sort is stable, as BOP's
             cand = sorted(cand, key=lambda e: e.score, reverse=True)[:n_valid]
             order = np.arange(len(cand))
-            err = _errors(cand, [gts[j] for j in idx], objects[oid], scene.K(i), r)
+            depth = scene.read_depth(i) if depth_renderer is not None else None
+            err = _errors(cand, [gts[j] for j in idx], objects[oid], scene.K(i), r, depth, depth_renderer)
+            vsd_hit = None
+            if "vsd" in err:
+                vsd_hit = np.stack([np.stack([match_greedy(err["vsd"][:, :, [k]], order, valid, [th]) >= 0
+                                              for th in VSD_THS], 1) for k in range(len(VSD_TAUS))], 1)
             mssd_hit = np.stack([match_greedy(err["mssd"], order, valid, [th]) >= 0 for th in MSSD_THS], 1)
             mspd_hit = np.stack([match_greedy(err["mspd"], order, valid, [th]) >= 0 for th in MSPD_THS], 1)
             add_hit = match_greedy(err["add"], order, valid, [ADD_TH]) >= 0
@@ -286,7 +304,8 @@ def score_estimates(estimates: list[Estimate], scene: Scene, objects: dict[int, 
                 records.append(_GtRecord(oid, float(vis[j]), mssd_hit[k], mspd_hit[k], bool(add_hit[k]),
                                          bool(rete_hit[k]),
                                          float(err["rete"][m, k, 0]) if m >= 0 else None,
-                                         float(err["rete"][m, k, 1]) if m >= 0 else None))
+                                         float(err["rete"][m, k, 1]) if m >= 0 else None,
+                                         None if vsd_hit is None else vsd_hit[k]))
     n_est = sum(n_est_obj.values())
     out = _summary(records, n_est)
     out["n_gt_all"] = n_gt_all
@@ -295,7 +314,9 @@ def score_estimates(estimates: list[Estimate], scene: Scene, objects: dict[int, 
     gt_objs = {g.obj_id for i in im_ids for g in scene.gt[i]}
     out["per_object"] = {str(k): _summary([rc for rc in records if rc.obj_id == k], n_est_obj.get(k, 0))
                          for k in sorted(gt_objs | set(n_est_obj))}
-    out["thresholds"] = {"mssd_diameter_fraction": [round(float(t), 6) for t in MSSD_THS],
+    out["thresholds"] = {"vsd_delta_mm": VSD_DELTA, "vsd_taus_diameter_fraction": [round(float(t), 6) for t in VSD_TAUS],
+                         "vsd_ths": [round(float(t), 6) for t in VSD_THS],
+                         "mssd_diameter_fraction": [round(float(t), 6) for t in MSSD_THS],
                          "mspd_px": [round(float(t * r), 6) for t in MSPD_THS],
                          "add_diameter_fraction": ADD_TH, "re_deg": RETE_THS[0], "te_mm": RETE_THS[1],
                          "visib_gt_min": VISIB_GT_MIN}
@@ -315,10 +336,12 @@ def _summary(records: list[_GtRecord], n_est: int) -> dict:
         rec_mssd = np.mean([rc.mssd_hit for rc in records], axis=0)
         rec_mspd = np.mean([rc.mspd_hit for rc in records], axis=0)
         ar_mssd, ar_mspd = float(rec_mssd.mean()), float(rec_mspd.mean())
-        ar = float(np.mean([ar_mssd, ar_mspd]))
+        ar_vsd = (float(np.mean([rc.vsd_hit for rc in records]))
+                  if all(rc.vsd_hit is not None for rc in records) else None)
+        ar = float(np.mean([a for a in (ar_vsd, ar_mssd, ar_mspd) if a is not None]))
     else:
         rec_mssd = rec_mspd = None
-        ar_mssd = ar_mspd = ar = None
+        ar_mssd = ar_mspd = ar = ar_vsd = None
     matched = [rc for rc in records if rc.re is not None]
     return {
         "n_gt": n,
@@ -326,7 +349,7 @@ def _summary(records: list[_GtRecord], n_est: int) -> dict:
         "add_recall": _mean_or_none([rc.add_hit for rc in records]),
         "ar_mssd": ar_mssd,
         "ar_mspd": ar_mspd,
-        "ar_vsd": None,
+        "ar_vsd": ar_vsd,
         "ar": ar,
         "recall_5deg5cm": _mean_or_none([rc.rete_hit for rc in records]),
         "re_median_deg": float(np.median([rc.re for rc in matched])) if matched else None,
@@ -416,6 +439,10 @@ def score_results(results_csv, scene_dir, models_dir, models_info=None, im_ids=N
 
     width, height = scene.image_size(im_ids[0])
     visib, source = gt_visibility(scene, models, im_ids, width, height)
+    depth_renderer = None
+    if scene.has_depth:
+        from .render import Renderer
+        depth_renderer = Renderer(width, height, {k: models[k].mesh for k in need})
 
     if ms_per_image is None:
         times = {}
@@ -423,7 +450,12 @@ def score_results(results_csv, scene_dir, models_dir, models_info=None, im_ids=N
             times[e.im_id] = e.time
         if times and all(t >= 0 for t in times.values()):
             ms_per_image = 1000.0 * float(np.mean(list(times.values())))
-    return score_estimates(estimates, scene, objects, visib, width, im_ids, source, ms_per_image, detection)
+    try:
+        return score_estimates(estimates, scene, objects, visib, width, im_ids, source, ms_per_image, detection,
+                               depth_renderer)
+    finally:
+        if depth_renderer is not None:
+            depth_renderer.close()
 
 
 def write_metrics_json(path, metrics_dict: dict) -> Path:

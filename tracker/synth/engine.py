@@ -37,6 +37,7 @@ from .randomise import (Backgrounds, camera_effects, composite, distractor_meshe
                         list_backgrounds, sample_lights)
 
 CHUNK = 1000
+DEPTH_SCALE = 0.1  # mm per unit of the written depth PNGs (up to 6.5 m)
 DISTRACTOR_BASE = 100000  # renderer ids of distractor meshes
 
 
@@ -58,6 +59,7 @@ class SynthConfig:
     # render the objects with their meshes decimated to about this many faces (the CPU
     # rasteriser's cost grows with triangles); None: the full meshes
     mesh_faces: int | None = None
+    depth: bool = False  # write depth/NNNNNN.png (uint16, DEPTH_SCALE mm per unit), as BOP scenes have
 
 
 @dataclass
@@ -171,8 +173,11 @@ def render_one(index: int, out_root: str) -> dict:
     q = int(rng.integers(cfg.jpeg_quality[0], cfg.jpeg_quality[1] + 1))
     cv2.imwrite(str(root / "rgb" / f"{im_id:06d}.jpg"), cv2.cvtColor(img, cv2.COLOR_RGB2BGR),
                 [cv2.IMWRITE_JPEG_QUALITY, q])
+    if cfg.depth:
+        d = np.clip(np.round(depth / DEPTH_SCALE), 0, 65535).astype(np.uint16)
+        cv2.imwrite(str(root / "depth" / f"{im_id:06d}.png"), d)
     return {"index": index, "chunk": chunk, "im_id": im_id, "gt": gts, "info": infos, "windows": windows,
-            "cam": {"cam_K": K.ravel().tolist(), "depth_scale": 1.0}}
+            "cam": {"cam_K": K.ravel().tolist(), "depth_scale": DEPTH_SCALE if cfg.depth else 1.0}}
 
 
 def _render_batch(args):
@@ -221,7 +226,7 @@ def generate(cfg: SynthConfig, out_dir, n_images: int, workers: int = 2, batch: 
         cfg.obj_ids = sorted(models)
     out = Path(out_dir)
     for chunk in range((n_images - 1) // CHUNK + 1):
-        for sub in ("rgb", "mask_visib", "clean"):
+        for sub in ("rgb", "mask_visib", "clean") + (("depth",) if cfg.depth else ()):
             (out / f"{chunk:06d}" / sub).mkdir(parents=True, exist_ok=True)
     meta = {"config": asdict(cfg), "images": n_images, "chunk": CHUNK,
             "command": command or " ".join(sys.argv), "created": time.strftime("%Y-%m-%d %H:%M:%S")}
