@@ -379,7 +379,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_ablate)
 
     s = sub.add_parser("report", help="reproduction report: our numbers next to the thesis's (Markdown + PNG)")
-    s.add_argument("--model", default="models/lmo")
+    s.add_argument("--model", default=str(Path(__file__).resolve().parents[1] / "models" / "lmo"))
     s.add_argument("--data", default=None, help="BOP scene with ground truth (default: the bundled recording)")
     s.add_argument("--out", required=True, help="report folder")
     s.add_argument("--ablate", help="JSON written by 'app.py ablate' (Tables 4.1 / 4.2)")
