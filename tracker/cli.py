@@ -172,25 +172,24 @@ def cmd_eval(args) -> int:
     from .evaluate import evaluate
     m = evaluate(args.model, args.data, args.json, boxes=args.boxes, mode=args.mode, bop_csv=args.bop_csv,
                  max_frames=args.max_frames)
-    print(f"{m['method']} on {m['n_gt']} instances ({m['boxes']} boxes): ADD(I) {m['add_recall']:.3f}, "
-          f"AR_MSSD {m['ar_mssd']:.3f}, AR_MSPD {m['ar_mspd']:.3f}, RE median {m['re_median_deg']:.1f} deg, "
-          f"TE median {m['te_median_mm']:.1f} mm, {m['ms_per_image']:.1f} ms/image")
+    from .report import fmt_num
+    print(f"{m['method']} on {m['n_gt']} instances ({m['boxes']} boxes): ADD(I) {fmt_num(m['add_recall'])}, "
+          f"AR_MSSD {fmt_num(m['ar_mssd'])}, AR_MSPD {fmt_num(m['ar_mspd'])}, RE median {fmt_num(m['re_median_deg'], 1)} "
+          f"deg, TE median {fmt_num(m['te_median_mm'], 1)} mm, {fmt_num(m['ms_per_image'], 1)} ms/image")
     print(f"{'obj':>5} {'ADD(I)':>7} {'MSSD':>6} {'MSPD':>6} {'RE':>6} {'TE':>7}")
     for k, v in sorted(m["per_object"].items(), key=lambda kv: int(kv[0])):
         if v.get("add_recall") is None:
             continue
-        print(f"{k:>5} {v['add_recall']:7.3f} {v['ar_mssd']:6.3f} {v['ar_mspd']:6.3f} "
-              f"{v['re_median_deg'] if v['re_median_deg'] is not None else float('nan'):6.1f} "
-              f"{v['te_median_mm'] if v['te_median_mm'] is not None else float('nan'):7.1f}")
+        print(f"{k:>5} {fmt_num(v['add_recall']):>7} {fmt_num(v['ar_mssd']):>6} {fmt_num(v['ar_mspd']):>6} "
+              f"{fmt_num(v['re_median_deg'], 1):>6} {fmt_num(v['te_median_mm'], 1):>7}")
     d = m.get("detection")
     if d:
-        from .report import fmt_num
         print(f"detector: AP {fmt_num(d['ap'])}, AP50 {fmt_num(d['ap50'])}, recall50 {fmt_num(d['recall50'])}, "
               f"{d['ms_per_image_median']:.1f} ms/image (median)")
         print(f"{'obj':>5} {'AP':>6} {'AP50':>6} {'R50':>6}")
         for k, v in sorted(d["per_object"].items(), key=lambda kv: int(kv[0])):
             if v["n_gt"]:
-                print(f"{k:>5} {v['ap']:6.3f} {v['ap50']:6.3f} {v['recall50']:6.3f}")
+                print(f"{k:>5} {fmt_num(v['ap']):>6} {fmt_num(v['ap50']):>6} {fmt_num(v['recall50']):>6}")
     print(f"visibility: {m['visibility_source']}\nwrote {args.json} and {m['bop_csv']}")
     return 0
 
@@ -214,9 +213,11 @@ def _print_run(s: dict, out: Path) -> None:
           + (" (interrupted)" if s["interrupted"] else "") + (f", {s['dropped_frames']} frames dropped" if s["dropped_frames"] else ""))
     print("median ms per frame: " + ", ".join(f"{k} {v['median']:.1f}" for k, v in st.items() if v["median"] is not None))
     if s.get("accuracy"):
+        from .report import fmt_num
         a = s["accuracy"]
-        print(f"accuracy against the ground truth: ADD(I) {a['add_recall']:.3f}, AR_MSSD {a['ar_mssd']:.3f}, "
-              f"AR_MSPD {a['ar_mspd']:.3f}, median RE {a['re_median_deg']:.1f} deg, median TE {a['te_median_mm']:.1f} mm")
+        print(f"accuracy against the ground truth ({s['boxes']} boxes, {a['n_gt']} instances): ADD(I) "
+              f"{fmt_num(a['add_recall'])}, AR_MSSD {fmt_num(a['ar_mssd'])}, AR_MSPD {fmt_num(a['ar_mspd'])}, "
+              f"median RE {fmt_num(a['re_median_deg'], 1)} deg, median TE {fmt_num(a['te_median_mm'], 1)} mm")
     print(f"run folder: {out} (poses.csv, timings.csv, summary.json)")
     if s.get("recording"):
         print(f"rerun recording: {s['recording']}  (open it with: .venv/bin/rerun {s['recording']}, "
