@@ -92,6 +92,23 @@ def test_threaded_capture_hands_over_the_newest_frame_and_counts_drops():
     assert seen[-1] >= 50  # the last frames handed over are the newest ones
 
 
+def test_camera_unplugged_and_plugged_back_in_reconnects():
+    plugs = iter([FakeCapture(n=10, period=0.002), None, FakeCapture(n=10, period=0.002)])
+
+    class Unplugged(FakeCapture):
+        def isOpened(self):
+            return False
+
+    def opener():  # the first retry finds no device, the second finds it back
+        c = next(plugs, None)
+        return c if c is not None else Unplugged()
+    cam = CameraSource(0, capture=opener(), opener=opener, reconnect_s=2.0, retry_s=0.05, timeout_s=0.5)
+    frames = [f.index for f in cam]
+    cam.close()
+    assert cam.reconnects == 1 and cam.lost  # back once; gone for good after the second unplug
+    assert frames == list(range(len(frames))) and len(frames) >= 15
+
+
 def test_missing_camera_is_a_clear_error():
     class Closed(FakeCapture):
         def isOpened(self):

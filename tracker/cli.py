@@ -222,6 +222,8 @@ def _print_run(s: dict, out: Path) -> None:
     if s.get("recording"):
         print(f"rerun recording: {s['recording']}  (open it with: .venv/bin/rerun {s['recording']}, "
               f"or headless: .venv/bin/rerun --serve-web {s['recording']})")
+    if s.get("camera_reconnects"):
+        print(f"warning: the camera dropped out and was reopened {s['camera_reconnects']} time(s)", file=sys.stderr)
     if s.get("camera_lost"):
         print("warning: the camera stopped delivering frames (unplugged?); the logs above are complete", file=sys.stderr)
     if s.get("video_truncated"):

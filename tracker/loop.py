@@ -269,7 +269,7 @@ def run_track(cfg: TrackConfig, log=print) -> dict:
         "stages_ms": {k: {"median": float(np.median(v)) if v else None,
                           "p95": float(np.percentile(v, 95)) if v else None} for k, v in stage_log.items()},
         "dropped_frames": int(getattr(src, "dropped", 0)), "pose_prior": prior, "poses_outside_prior": out_of_prior, "interrupted": interrupted,
-        "camera_lost": bool(getattr(src, "lost", False)), "video_truncated": bool(getattr(src, "truncated", False)),
+        "camera_lost": bool(getattr(src, "lost", False)), "camera_reconnects": int(getattr(src, "reconnects", 0)), "video_truncated": bool(getattr(src, "truncated", False)),
         "source": str(cfg.source), "model": str(cfg.model), "boxes": "gt" if boxes_of is not None else ("detector" if schedule is not None else "none"),
         "detector_frames": schedule.detector_frames if schedule is not None else None,
         "detect_every": cfg.detect_every, "smoothing_alpha": cfg.smooth, "looped": cfg.loop,

@@ -120,21 +120,24 @@ class VideoFileSource(Source):
 
 class CameraSource(Source):
     """V4L2 camera read by a thread that keeps only the newest frame: a slow pipeline drops
-    frames (counted in ``dropped``) instead of falling behind."""
+    frames (counted in ``dropped``) instead of falling behind. When the camera stops
+    delivering (unplugged), the thread tries to open it again for ``reconnect_s`` seconds
+    (counted in ``reconnects``); after that the iteration ends cleanly with ``lost`` set."""
 
     kind = "camera"
 
-    def __init__(self, device, width=None, height=None, fps=None, max_frames=None, capture=None, timeout_s=2.0):
+    def __init__(self, device, width=None, height=None, fps=None, max_frames=None, capture=None, timeout_s=2.0,
+                 reconnect_s: float = 5.0, opener=None, retry_s: float = 0.5):
         self.device = device
-        self.cap = capture if capture is not None else cv2.VideoCapture(device, cv2.CAP_V4L2)
+        self.size_fps = (width, height, fps)
+        if opener is None and capture is None:
+            def opener():
+                return cv2.VideoCapture(device, cv2.CAP_V4L2)
+        self.opener, self.reconnect_s, self.retry_s = opener, reconnect_s, retry_s
+        self.cap = capture if capture is not None else opener()
         if not self.cap.isOpened():
             raise UserError(f"no camera at '{device}' (check the index or /dev/videoN and permissions)")
-        if width:
-            self.cap.set(cv2.CAP_PROP_FRAME_WIDTH, width)
-        if height:
-            self.cap.set(cv2.CAP_PROP_FRAME_HEIGHT, height)
-        if fps:
-            self.cap.set(cv2.CAP_PROP_FPS, fps)
+        self._configure(self.cap)
         self.fps = self.cap.get(cv2.CAP_PROP_FPS) or fps
         self.max_frames, self.timeout_s = max_frames, timeout_s
         self._cond = threading.Condition()
@@ -142,20 +145,57 @@ class CameraSource(Source):
         self._grabbed = 0
         self._taken = -1
         self.dropped = 0
+        self.reconnects = 0
+        self.reconnecting = False
         self.lost = False
         self._stop = False
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
 
+    def _configure(self, cap):
+        width, height, fps = self.size_fps
+        if width:
+            cap.set(cv2.CAP_PROP_FRAME_WIDTH, width)
+        if height:
+            cap.set(cv2.CAP_PROP_FRAME_HEIGHT, height)
+        if fps:
+            cap.set(cv2.CAP_PROP_FPS, fps)
+
+    def _reopen(self) -> bool:
+        if self.opener is None or self.reconnect_s <= 0:
+            return False
+        with self._cond:
+            self.reconnecting = True
+        self.cap.release()
+        deadline = time.monotonic() + self.reconnect_s
+        try:
+            while not self._stop and time.monotonic() < deadline:
+                time.sleep(self.retry_s)
+                cap = self.opener()
+                if cap.isOpened():
+                    self._configure(cap)
+                    self.cap = cap
+                    self.reconnects += 1
+                    return True
+                cap.release()
+            return False
+        finally:
+            with self._cond:
+                self.reconnecting = False
+                self._cond.notify_all()
+
     def _run(self):
         while not self._stop:
             ok, frame = self.cap.read()
             t = time.monotonic()
-            with self._cond:
-                if not ok:
+            if not ok:
+                if self._reopen():
+                    continue
+                with self._cond:
                     self.lost = True
                     self._cond.notify_all()
-                    return
+                return
+            with self._cond:
                 self._latest = (self._grabbed, t, frame)
                 self._grabbed += 1
                 self._cond.notify_all()
@@ -164,8 +204,11 @@ class CameraSource(Source):
         n = 0
         while self.max_frames is None or n < self.max_frames:
             with self._cond:
-                ok = self._cond.wait_for(lambda: self.lost or (self._latest and self._latest[0] > self._taken),
-                                         timeout=self.timeout_s)
+                while True:
+                    ok = self._cond.wait_for(lambda: self.lost or (self._latest and self._latest[0] > self._taken),
+                                             timeout=self.timeout_s)
+                    if ok or not self.reconnecting:
+                        break  # (while reconnecting, keep waiting)
                 if not ok or (self.lost and (self._latest is None or self._latest[0] <= self._taken)):
                     self.lost = True
                     return  # unplugged or stalled: the loop ends cleanly and says so
