@@ -60,6 +60,19 @@ def test_every_method_trains_exports_and_runs(bundles, tiny_split, method):
             assert np.allclose(p.R @ p.R.T, np.eye(3), atol=1e-6) and 10 < p.t[2] < 10000
 
 
+def test_estimator_leaves_the_process_thread_pools_alone(bundles, tiny_split):
+    """The one-thread cap on BLAS/OpenMP holds only while the regressors run: a process-wide
+    cap leaked into torch training later in the same process and hung oneDNN."""
+    from threadpoolctl import threadpool_info
+    before = [(p["filepath"], p["num_threads"]) for p in threadpool_info()]
+    est = PoseEstimator(bundles["cvam"][1])
+    scene = load_scene(tiny_split / "000000", require_gt=True)
+    dets = [Detection(g.obj_id, np.array(g.info["bbox_visib"], float)) for g in scene.gt[0]]
+    assert est.estimate(scene.read_rgb(0), scene.K(0), dets)
+    after = {p["filepath"]: p["num_threads"] for p in threadpool_info()}
+    assert all(after[f] == n for f, n in before if f in after)
+
+
 def test_tampered_or_missing_files_are_refused(bundles, tmp_path):
     _, src = bundles["cvam"]
     b = tmp_path / "b"

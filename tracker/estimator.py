@@ -5,6 +5,7 @@ scikit-learn; never torch.
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import time
 from dataclasses import dataclass
@@ -51,7 +52,8 @@ def make_session(path, threads: int = 1):
 
 class PoseEstimator:
     """``threads``: onnxruntime intra-op threads. ``single_thread_math``: cap numpy's BLAS
-    and scikit-learn's OpenMP pools at one thread for the whole process; their thread pools
+    and the OpenMP pools at one thread while the regressors run (and only then: a process-wide
+    cap leaked into torch training in the same process and hung oneDNN); their thread pools
     cost more than they give on a handful of crops (measured: the regressors for 8 objects
     took 30 ms with the default pools, 4.6 ms with one thread, while a renderer shared the
     2 cores)."""
@@ -65,10 +67,11 @@ class PoseEstimator:
         self.session = make_session(self.bundle.path("encoder"), threads)
         self.head = self.bundle.load_joblib("pose_head")
         self.conditional = len(self.session.get_inputs()) > 1
+        self._pools = None
         if single_thread_math:  # after the libraries are loaded: threadpoolctl sees only those
             import sklearn.neighbors  # noqa: F401  (loads its OpenMP runtime)
-            from threadpoolctl import threadpool_limits
-            self._limits = threadpool_limits(1)
+            from threadpoolctl import ThreadpoolController
+            self._pools = ThreadpoolController()
         shape = self.session.get_inputs()[0].shape
         if shape[1:] != [3, self.size, self.size]:
             raise UserError(f"encoder input is {shape[1:]}, the manifest says 3x{self.size}x{self.size}")
@@ -104,7 +107,8 @@ class PoseEstimator:
         t1 = time.perf_counter()
         if mode == "aae" and self.head.codebook is None:
             self.head.codebook = self.bundle.load_joblib("codebook")
-        R, t = self.head.predict(mu, ids, boxes, K, mode=mode)
+        with self._pools.limit(limits=1) if self._pools is not None else contextlib.nullcontext():
+            R, t = self.head.predict(mu, ids, boxes, K, mode=mode)
         if timings is not None:
             timings["encode"] = 1000 * (t1 - t0)
             timings["regress"] = 1000 * (time.perf_counter() - t1)
