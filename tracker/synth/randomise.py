@@ -139,13 +139,17 @@ def sample_lights(rng: np.random.Generator):
 def jitter_colours(rgb: np.ndarray, mask: np.ndarray, rng: np.random.Generator, strength: float = 0.15) -> None:
     """Material / vertex-colour jitter of one object in image space: per-channel gain and
     a saturation change inside ``mask`` (in place)."""
-    if not mask.any():
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if not len(rows):
         return
-    px = rgb[mask].astype(np.float32)
+    # work inside the mask's box only (a few % of the frame)
+    box = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
+    sub, m = rgb[box], mask[box]
+    px = sub[m].astype(np.float32)
     px *= rng.uniform(1 - strength, 1 + strength, 3)
     grey = px.mean(axis=1, keepdims=True)
     px = grey + (px - grey) * rng.uniform(0.8, 1.5)
-    rgb[mask] = np.clip(px, 0, 255).astype(np.uint8)
+    sub[m] = np.clip(px, 0, 255).astype(np.uint8)
 
 
 def composite(background: np.ndarray, render: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -157,11 +161,15 @@ def composite(background: np.ndarray, render: np.ndarray, mask: np.ndarray) -> n
 
 def camera_effects(img: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """Exposure, contrast, saturation and white balance, blur (defocus or motion), sensor noise."""
-    f = img.astype(np.float32)
-    f = (f - 128) * rng.uniform(0.7, 1.2) + 128 + rng.uniform(-30, 30)  # contrast, brightness
-    grey = f.mean(axis=2, keepdims=True)
-    f = grey + (f - grey) * rng.uniform(0.8, 1.4)                          # saturation
-    f *= rng.uniform(0.88, 1.12, 3)                                         # white balance
+    c, b = rng.uniform(0.7, 1.2), rng.uniform(-30, 30)                     # contrast, brightness
+    s = rng.uniform(0.8, 1.4)                                               # saturation
+    wb = rng.uniform(0.88, 1.12, 3)                                         # white balance
+    # the four are one affine colour map, applied in one pass:
+    # wb * (grey + s (f - grey)) with f = c (img - 128) + 128 + b and grey the channel mean
+    sat = s * np.eye(3) + (1 - s) / 3.0
+    A = np.diag(wb) @ sat * c
+    offset = np.diag(wb) @ sat @ np.full(3, 128 * (1 - c) + b)
+    f = cv2.transform(img.astype(np.float32), np.hstack([A, offset[:, None]]).astype(np.float32))
     r = rng.random()
     if r < 0.3:
         s = rng.uniform(0.3, 1.2)
