@@ -144,6 +144,8 @@ def test_training_resumes_from_its_checkpoint(tiny_split, tmp_path):
     logs = []
     train_bundle(tiny_split, out, method="cvml", size=32, latent=16, minutes=0.1, reg_minutes=0.02, log=logs.append)
     assert any(str(l).startswith("resumed from") for l in logs)
+    with pytest.raises(UserError, match="checkpoint of another network"):
+        _train(tiny_split, out, "dalsr")  # same --out, another network: a clear error, no traceback
 
 
 def test_ablate_tables_on_a_tiny_bundle(tiny_bundle, tmp_path):

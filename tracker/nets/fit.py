@@ -11,6 +11,7 @@ import torch
 from torch.nn import functional as F
 from tqdm import tqdm
 
+from ..errors import UserError
 from .autoencoder import AutoEncoder, loss_terms
 
 KL_ALPHA = 0.1  # Table 4.6
@@ -85,7 +86,12 @@ def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, ou
     start_epoch, best, since_best, spent = 0, math.inf, 0, 0.0
     if ckpt.is_file():
         st = torch.load(ckpt, weights_only=False)
-        model.load_state_dict(st["model"])
+        try:
+            model.load_state_dict(st["model"])
+        except RuntimeError:
+            raise UserError(f"{ckpt} is the checkpoint of another network (method, encoder, size or "
+                            f"objects differ): delete {Path(out_dir)} to start afresh, or train into "
+                            f"another --out") from None
         opt.load_state_dict(st["opt"])
         sched.load_state_dict(st["sched"])
         g.set_state(st["gen"])
