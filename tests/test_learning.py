@@ -61,8 +61,8 @@ def test_every_method_trains_exports_and_runs(bundles, tiny_split, method):
 
 
 def test_estimator_leaves_the_process_thread_pools_alone(bundles, tiny_split):
-    """The one-thread cap on BLAS/OpenMP holds only while the regressors run: a process-wide
-    cap leaked into torch training later in the same process and hung oneDNN."""
+    """The one-thread cap on BLAS/OpenMP holds only while the regressors run, never leaking
+    into the rest of the process (torch training in the same process, for one)."""
     from threadpoolctl import threadpool_info
     before = [(p["filepath"], p["num_threads"]) for p in threadpool_info()]
     est = PoseEstimator(bundles["cvam"][1])

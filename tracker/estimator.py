@@ -52,8 +52,8 @@ def make_session(path, threads: int = 1):
 
 class PoseEstimator:
     """``threads``: onnxruntime intra-op threads. ``single_thread_math``: cap numpy's BLAS
-    and the OpenMP pools at one thread while the regressors run (and only then: a process-wide
-    cap leaked into torch training in the same process and hung oneDNN); their thread pools
+    and the OpenMP pools at one thread while the regressors run (only then: a process-wide cap
+    would leak into everything else the process runs, torch training included); their pools
     cost more than they give on a handful of crops (measured: the regressors for 8 objects
     took 30 ms with the default pools, 4.6 ms with one thread, while a renderer shared the
     2 cores)."""

@@ -162,11 +162,11 @@ def composite(background: np.ndarray, render: np.ndarray, mask: np.ndarray) -> n
 def camera_effects(img: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """Exposure, contrast, saturation and white balance, blur (defocus or motion), sensor noise."""
     c, b = rng.uniform(0.7, 1.2), rng.uniform(-30, 30)                     # contrast, brightness
-    s = rng.uniform(0.8, 1.4)                                               # saturation
+    sat_gain = rng.uniform(0.8, 1.4)                                        # saturation
     wb = rng.uniform(0.88, 1.12, 3)                                         # white balance
     # the four are one affine colour map, applied in one pass:
-    # wb * (grey + s (f - grey)) with f = c (img - 128) + 128 + b and grey the channel mean
-    sat = s * np.eye(3) + (1 - s) / 3.0
+    # wb * (grey + sat_gain (f - grey)) with f = c (img - 128) + 128 + b, grey the channel mean
+    sat = sat_gain * np.eye(3) + (1 - sat_gain) / 3.0
     A = np.diag(wb) @ sat * c
     offset = np.diag(wb) @ sat @ np.full(3, 128 * (1 - c) + b)
     f = cv2.transform(img.astype(np.float32), np.hstack([A, offset[:, None]]).astype(np.float32))
