@@ -299,7 +299,7 @@ def _rss_mb() -> dict:
     except OSError:
         pass
     return {"current": None if cur is None else round(cur, 1),
-            "peak": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3, 1)}
+            "peak": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / 1e6, 1)}  # KiB on Linux
 
 
 def _scene_id(source) -> int:
