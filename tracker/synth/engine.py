@@ -159,7 +159,7 @@ def render_one(index: int, out_root: str) -> dict:
     labels = scene.render_labels(K, inst)
     for k, vis in enumerate(scene_visibility(scene, crop_r, K, inst, _W["verts"], n_t, labels, keep_rgb=True)):
         oid, R, t = inst[k]
-        jitter_colours(rgb, vis.mask_visib, rng)
+        jitter_colours(rgb, vis.mask_visib, vis.bbox_visib, rng)
         win = vis.window
         cv2.imwrite(str(root / "clean" / f"{im_id:06d}_{k:06d}.png"),
                     cv2.cvtColor(vis.alone_rgb, cv2.COLOR_RGB2BGR))

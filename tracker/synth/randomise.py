@@ -136,15 +136,15 @@ def sample_lights(rng: np.random.Generator):
 # --------------------------------------------------------------------------- camera effects
 
 
-def jitter_colours(rgb: np.ndarray, mask: np.ndarray, rng: np.random.Generator, strength: float = 0.15) -> None:
+def jitter_colours(rgb: np.ndarray, mask: np.ndarray, box, rng: np.random.Generator,
+                   strength: float = 0.15) -> None:
     """Material / vertex-colour jitter of one object in image space: per-channel gain and
-    a saturation change inside ``mask`` (in place)."""
-    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
-    if not len(rows):
+    a saturation change inside ``mask`` (in place). ``box``: the mask's (x, y, w, h) as
+    ``visibility.mask_box`` gives it (w <= 0 when empty); only that part of the frame is touched."""
+    x, y, w, h = (int(v) for v in box)
+    if w <= 0 or h <= 0:
         return
-    # work inside the mask's box only (a few % of the frame)
-    box = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
-    sub, m = rgb[box], mask[box]
+    sub, m = rgb[y:y + h, x:x + w], mask[y:y + h, x:x + w]
     px = sub[m].astype(np.float32)
     px *= rng.uniform(1 - strength, 1 + strength, 3)
     grey = px.mean(axis=1, keepdims=True)
