@@ -4,6 +4,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
+from scipy.spatial.transform import Rotation
 
 from tracker import geometry as G
 
@@ -182,3 +183,20 @@ def test_window_within_a_window_crops_the_same(box, shrink, dx, dy):
         return
     diff = np.abs(direct.reshape(-1, 3) - via.reshape(-1, 3))[ok]
     assert np.median(diff) < 3.0
+
+
+@given(st.floats(-400, 1000), st.floats(-300, 800), quat)
+def test_ray_rotation_turns_the_camera_to_look_at_the_object(u, v, q):
+    K = np.array([[572.4, 0, 325.3], [0, 573.6, 242.0], [0, 0, 1]])
+    R_ray = G.ray_rotation(np.array([u, v]), K)
+    assert G.is_rotation(R_ray)
+    t = G.translation_from_centre(np.array([u, v]), 800.0, K)
+    # in the camera turned by R_ray the object sits on the optical axis ...
+    assert np.allclose(R_ray.T @ t, [0, 0, np.linalg.norm(t)], atol=1e-6)
+    # ... and it is the smallest such turn: about an axis in the image plane, no roll
+    assert abs(Rotation.from_matrix(R_ray).as_rotvec()[2]) < 1e-9
+    # egocentric = R_ray @ allocentric, batched like the single call
+    R = rot(q)
+    both = G.ray_rotation(np.array([[u, v], [K[0, 2], K[1, 2]]]), np.stack([K, K]))
+    assert np.allclose(both[0], R_ray) and np.allclose(both[1], np.eye(3))
+    assert np.allclose(R_ray @ (R_ray.T @ R), R)

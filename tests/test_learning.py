@@ -190,3 +190,50 @@ def test_distance_knn_equals_scikit_learns_brute_force():
     ref = KNeighborsRegressor(6, weights="distance", algorithm="brute").fit(
         m._prep(X).astype(np.float32), y.astype(np.float32)).predict(m._prep(Q).astype(np.float32))
     np.testing.assert_allclose(m.predict(Q), ref, atol=1e-5)
+
+
+class _Const:
+    def __init__(self, value):
+        self.value = np.asarray(value, dtype=float)
+
+    def predict(self, X):
+        return np.repeat(self.value[None], len(X), 0)
+
+
+def test_pose_head_turns_ray_frame_rotations_into_the_camera_frame():
+    from scipy.spatial.transform import Rotation
+
+    from tracker.geometry import box_offset_of_centre, ray_rotation
+    from tracker.regressors import PoseHead
+    K = np.array([[572.4, 0, 325.3], [0, 573.6, 242.0], [0, 0, 1]])
+    R_a = Rotation.from_euler("xyz", [20, -35, 110], degrees=True).as_matrix()
+    boxes = np.array([[300.0, 220, 50, 45], [10, 15, 60, 60], [560, 400, 70, 70]])
+    off = np.array([0.05, -0.1])
+    head = PoseHead([1], _Const(R_a), _Const(off), _Const(np.log(500.0)), rotation_frame="ray")
+    R, t = head.predict(np.zeros((3, 4)), [1, 1, 1], boxes, K)
+    centres = np.stack([c for c in (boxes[:, :2] + boxes[:, 2:] / 2 - 0.5)]) + off * boxes[:, 2:].max(1)[:, None]
+    assert np.allclose(box_offset_of_centre(boxes, centres), off)
+    assert np.allclose(R, ray_rotation(centres, K) @ R_a)
+    # the object lies on the ray through its estimated centre, as the rotation assumed
+    assert np.allclose(np.swapaxes(ray_rotation(centres, K), 1, 2) @ t[..., None],
+                       np.c_[np.zeros((3, 2)), np.linalg.norm(t, axis=1)][..., None], atol=1e-6)
+    assert rotation_error_deg(R[2], R_a) > 20  # a corner object is seen turned
+    # a head pickled before the option existed predicts camera-frame rotations, as trained
+    del head.__dict__["rotation_frame"]
+    R_old, t_old = head.predict(np.zeros((3, 4)), [1, 1, 1], boxes, K)
+    assert np.allclose(R_old, R_a) and np.allclose(t_old, t)
+
+
+def test_refit_heads_keeps_the_encoder_and_writes_a_verified_bundle(tiny_bundle, tmp_path):
+    from tracker.bundle import sha256
+    from tracker.train import refit_heads
+    before = {p.name: sha256(p) for p in tiny_bundle.iterdir() if p.is_file()}
+    m = refit_heads(tiny_bundle, tiny_bundle.parent / "split", out_dir=tmp_path / "refit", reg_minutes=0.01,
+                    log=lambda *a: None)
+    assert {p.name: sha256(p) for p in tiny_bundle.iterdir() if p.is_file()} == before  # the source is untouched
+    assert m["heads"]["rotation_frame"] == "ray" and m["name"] == "refit"
+    assert m["files"]["encoder.onnx"]["sha256"] == before["encoder.onnx"]
+    est = PoseEstimator(tmp_path / "refit")  # hashes verified on load
+    assert est.head.rotation_frame == "ray"
+    with pytest.raises(UserError, match="synth_config"):
+        refit_heads(tiny_bundle, tmp_path, out_dir=tmp_path / "x", log=lambda *a: None)

@@ -18,10 +18,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .crops import CropSet, build_training_crops, train_val_split
+from .crops import bundle_training_crops, train_val_split
 from .errors import UserError
 from .geometry import (axis_angle_from_matrix, box_offset_of_centre, centre_from_box_offset, matrix_from_axis_angle,
-                       matrix_from_quat, matrix_from_rot6d, project, quat_from_matrix, rot6d_from_matrix, rotation_error_deg)
+                       matrix_from_quat, matrix_from_rot6d, quat_from_matrix, rot6d_from_matrix, rotation_error_deg)
 from .regressors import (Codebook, DistanceKNN, NumpyMLP, apparent_size, centre_inputs, distance_inputs,
                          rotation_inputs)
 
@@ -62,21 +62,14 @@ def ablate(model_dir, data_dir, json_path=None, mlp_minutes: float = 1.0, max_tr
     t0 = time.perf_counter()
     est = PoseEstimator(model_dir)
     b = est.bundle
-    size = est.size
-    cache = Path(model_dir).parent / (Path(model_dir).name + ".work") / f"crops_{size}_seed{seed}_all.npz"
-    trained_on = b.manifest.get("training", {}).get("data")
-    same = trained_on is not None and Path(trained_on).resolve() == Path(data_dir).resolve()
-    use_cache = same and cache.is_file()  # training's own crops of this very split
-    cs = CropSet.load(cache) if use_cache else build_training_crops(data_dir, size, seed=seed)
-    log(f"{len(cs)} crops ({'cached by training' if use_cache else 'cut now'})")
+    cs = bundle_training_crops(model_dir, b.manifest, data_dir, seed=seed, log=log)
     unknown = sorted(set(np.unique(cs.obj_id).tolist()) - set(est.obj_ids))
     if unknown:
         raise UserError(f"{data_dir}: objects {unknown} are not in the bundle {model_dir}")
     tr, va = train_val_split(len(cs), seed)
     if max_train and len(tr) > max_train:
         tr = np.sort(np.random.default_rng(seed).choice(tr, max_train, replace=False))
-    mu = np.concatenate([est.encode(cs.x[i:i + 256].transpose(0, 3, 1, 2).astype(np.float32) / 255.0,
-                                    cs.obj_id[i:i + 256]) for i in range(0, len(cs), 256)])
+    mu = est.encode_crops(cs.x, cs.obj_id)
     log(f"encoded in {time.perf_counter() - t0:.0f} s; {len(tr)} train / {len(va)} validation crops")
     n = len(est.obj_ids)
     idx = est.head.index(cs.obj_id)
@@ -89,9 +82,11 @@ def ablate(model_dir, data_dir, json_path=None, mlp_minutes: float = 1.0, max_tr
     diam = np.array([objs[int(o)]["diameter"] for o in cs.obj_id[va]])
     Xr_tr, Xr_va = rotation_inputs(mu[tr], idx[tr], n), rotation_inputs(mu[va], idx[va], n)
 
+    R_obs = cs.R_ray()  # what the crop shows; with the true centre, errors equal those in the camera frame
+
     def rot_row(name, R_va):
-        add = _add_true_t(R_va, cs.R[va], cs.obj_id[va], points, symmetric)
-        re = rotation_error_deg(R_va, cs.R[va])
+        add = _add_true_t(R_va, R_obs[va], cs.obj_id[va], points, symmetric)
+        re = rotation_error_deg(R_va, R_obs[va])
         row = {"method": name, "add_recall_true_t": float(np.mean(add < 0.1 * diam)),
                "re_median_deg": float(np.median(re))}
         log(f"  {name:24s} ADD(I) {row['add_recall_true_t']:.3f}  RE median {row['re_median_deg']:.1f} deg")
@@ -100,25 +95,25 @@ def ablate(model_dir, data_dir, json_path=None, mlp_minutes: float = 1.0, max_tr
     log("Table 4.1 - rotation")
     t41 = []
     for rep, (enc, dec) in REPRESENTATIONS.items():
-        Y = enc(cs.R[tr])
+        Y = enc(R_obs[tr])
         mlp = NumpyMLP(hidden=(256, 256), loss="l1", epochs=300, weight_decay=1e-2, minutes=mlp_minutes, seed=seed)
         if rep == "6D":  # the bundle's rotation loss: L1 on the matrix via Gram-Schmidt
             mlp.loss = "l1_rotation"
-            mlp.fit(Xr_tr, cs.R[tr], np.repeat(np.eye(3)[None, None], len(tr), 0),
-                    Xr_va, cs.R[va], np.repeat(np.eye(3)[None, None], len(va), 0))
+            mlp.fit(Xr_tr, R_obs[tr], np.repeat(np.eye(3)[None, None], len(tr), 0),
+                    Xr_va, R_obs[va], np.repeat(np.eye(3)[None, None], len(va), 0))
             R_mlp = mlp.predict(Xr_va)
         else:
-            mlp.fit(Xr_tr, Y, None, Xr_va, enc(cs.R[va]))
+            mlp.fit(Xr_tr, Y, None, Xr_va, enc(R_obs[va]))
             R_mlp = dec(mlp.predict(Xr_va))
         t41.append(rot_row(f"MLP + {rep}", R_mlp))
         rf = _rf(seed).fit(Xr_tr, Y.reshape(len(tr), -1))
         out = rf.predict(Xr_va)
         t41.append(rot_row(f"RF + {rep}", matrix_from_rot6d(out) if rep == "6D" else dec(out)))
-    cb = Codebook().fit(mu[tr], cs.obj_id[tr], cs.R[tr], np.ones(len(tr)))
+    cb = Codebook().fit(mu[tr], cs.obj_id[tr], R_obs[tr], np.ones(len(tr)))
     t41.append(rot_row("NNS (codebook, cosine)", cb.predict(mu[va], cs.obj_id[va])[0]))
 
     log("Table 4.2a - centre")
-    centres = np.stack([project(np.zeros((1, 3)), k, None, t)[0] for k, t in zip(cs.K, cs.t)])
+    centres = cs.centres()
     off = box_offset_of_centre(cs.box, centres)
     Xc_tr = centre_inputs(mu[tr], idx[tr], n, cs.box[tr], cs.K[tr])
     Xc_va = centre_inputs(mu[va], idx[va], n, cs.box[va], cs.K[va])

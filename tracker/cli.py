@@ -127,6 +127,17 @@ def cmd_train(args) -> int:
     return 0
 
 
+def cmd_refit_heads(args) -> int:
+    from .train import refit_heads
+    m = refit_heads(args.model, args.data, out_dir=args.out, seed=args.seed, reg_minutes=args.reg_minutes,
+                    command="app.py " + " ".join(sys.argv[1:]))
+    v = m["validation_synthetic"]
+    print(f"wrote {args.out or args.model}: synthetic validation median RE {v['regression']['re_median_deg']:.1f} deg "
+          f"(AAE {v['aae']['re_median_deg']:.1f}), median TE {v['regression']['te_median_mm']:.1f} mm "
+          f"(AAE {v['aae']['te_median_mm']:.1f})")
+    return 0
+
+
 def cmd_train_detector(args) -> int:
     from .detector_train import train_detector
     d = train_detector(args.data, args.model, minutes=args.minutes, width=args.width, input_w=args.input[0],
@@ -360,6 +371,14 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--max-images", type=int, help="use only the first N scene images")
     s.add_argument("--models-info", help="models_info.json (default: computed from the meshes)")
     s.set_defaults(func=cmd_train)
+
+    s = sub.add_parser("refit-heads", help="refit a bundle's regressors and AAE codebook on its frozen encoder")
+    s.add_argument("--model", required=True, help="bundle folder, e.g. models/lmo")
+    s.add_argument("--data", required=True, help="the 'synth' split to fit on (the bundle's own, normally)")
+    s.add_argument("--out", help="write the refitted bundle here (default: in place)")
+    s.add_argument("--reg-minutes", type=float, default=4.0, help="time budget per MLP regressor")
+    s.add_argument("--seed", type=int, default=0)
+    s.set_defaults(func=cmd_refit_heads)
 
     s = sub.add_parser("train-detector", help="train the 2D detector on synth scenes and add it to a bundle")
     s.add_argument("--data", required=True, help="a 'synth' split")

@@ -18,7 +18,7 @@ from tqdm import tqdm
 
 from .bop import load_scene
 from .errors import UserError
-from .geometry import SquareCrop, crop_and_resize, square_crop
+from .geometry import SquareCrop, crop_and_resize, project, ray_rotation, square_crop
 
 MIN_VISIB = 0.1  # BOP: instances less visible than this are not used
 
@@ -36,6 +36,15 @@ class CropSet:
 
     def __len__(self):
         return len(self.obj_id)
+
+    def centres(self) -> np.ndarray:
+        """(N, 2) projected object origins in pixels."""
+        return np.stack([project(np.zeros((1, 3)), k, None, t)[0] for k, t in zip(self.K, self.t)])
+
+    def R_ray(self) -> np.ndarray:
+        """(N, 3, 3) the rotations relative to the viewing ray through the object's centre:
+        what the crop shows (:func:`tracker.geometry.ray_rotation`)."""
+        return np.swapaxes(ray_rotation(self.centres(), self.K), 1, 2) @ self.R
 
     def subset(self, idx) -> "CropSet":
         return CropSet(*(getattr(self, f)[idx] for f in self.__dataclass_fields__))
@@ -123,3 +132,18 @@ def build_training_crops(split_dir, size: int, seed: int = 0, jitter: bool = Tru
         raise UserError(f"{split_dir}: no instance with visible fraction >= {MIN_VISIB}")
     return CropSet(np.stack(cols["x"]), np.stack(cols["y"]), np.array(cols["obj_id"]), np.stack(cols["R"]),
                    np.stack(cols["t"]), np.stack(cols["box"]), np.stack(cols["K"]), np.array(cols["visib"]))
+
+
+def bundle_training_crops(model_dir, manifest: dict, data_dir, seed: int = 0, log=print) -> CropSet:
+    """The crops of ``data_dir`` at a bundle's input size: training's cached crops when the
+    bundle was trained on this very split, else cut now (same seed, same boxes)."""
+    size = int(manifest["input_size"])
+    cache = Path(model_dir).parent / (Path(model_dir).name + ".work") / f"crops_{size}_seed{seed}_all.npz"
+    trained_on = manifest.get("training", {}).get("data")
+    if trained_on is not None and Path(trained_on).resolve() == Path(data_dir).resolve() and cache.is_file():
+        cs = CropSet.load(cache)
+        log(f"{len(cs)} crops (cached by training)")
+    else:
+        cs = build_training_crops(data_dir, size, seed=seed)
+        log(f"{len(cs)} crops (cut now)")
+    return cs

@@ -90,6 +90,13 @@ class PoseEstimator:
             feeds[self.session.get_inputs()[1].name] = oh
         return self.session.run(None, feeds)[0]
 
+    def encode_crops(self, crops_rgb: np.ndarray, obj_ids, batch: int = 256) -> np.ndarray:
+        """Latent codes of (N, S, S, 3) uint8 RGB crops, in batches."""
+        if len(crops_rgb) == 0:
+            return np.zeros((0, self.session.get_outputs()[0].shape[1]), np.float32)
+        return np.concatenate([self.encode(crops_rgb[i:i + batch].transpose(0, 3, 1, 2).astype(np.float32) / 255.0,
+                                           obj_ids[i:i + batch]) for i in range(0, len(crops_rgb), batch)])
+
     def estimate(self, image_rgb: np.ndarray, K: np.ndarray, detections: list[Detection],
                  mode: str = "regression", timings: dict | None = None) -> list[PoseEstimate]:
         """Poses for ``detections``; ``timings`` (if given) gets 'encode' (crops + encoder)

@@ -16,7 +16,7 @@ from sklearn.base import BaseEstimator, RegressorMixin
 from sklearn.preprocessing import StandardScaler
 
 from .errors import UserError
-from .geometry import box_features, centre_from_box_offset, matrix_from_rot6d, translation_from_centre
+from .geometry import box_features, centre_from_box_offset, matrix_from_rot6d, ray_rotation, translation_from_centre
 
 
 def _silu(x):
@@ -225,11 +225,21 @@ def apparent_size(boxes, K) -> np.ndarray:
 
 
 class PoseHead:
-    """Latent code + box -> pose, by regression (the thesis) or by the AAE codebook."""
+    """Latent code + box -> pose, by regression (the thesis) or by the AAE codebook.
 
-    def __init__(self, obj_ids, rotation, centre, distance, codebook=None):
+    ``rotation_frame``: 'ray' when the rotation regressor and the codebook were trained on
+    rotations relative to the viewing ray (allocentric, :func:`tracker.geometry.ray_rotation`),
+    turned back into the camera frame through the estimated centre; 'camera' (bundles made
+    before it existed) when they predict the camera-frame rotation directly."""
+
+    rotation_frame = "camera"  # the default of heads pickled without the attribute
+
+    def __init__(self, obj_ids, rotation, centre, distance, codebook=None, rotation_frame="ray"):
         self.obj_ids = [int(o) for o in obj_ids]
         self.rotation, self.centre, self.distance, self.codebook = rotation, centre, distance, codebook
+        if rotation_frame not in ("ray", "camera"):
+            raise ValueError(f"rotation_frame must be 'ray' or 'camera', not {rotation_frame!r}")
+        self.rotation_frame = rotation_frame
 
     def index(self, obj_ids) -> np.ndarray:
         lut = {o: i for i, o in enumerate(self.obj_ids)}
@@ -254,6 +264,8 @@ class PoseHead:
             tz = np.exp(self.distance.predict(distance_inputs(mu, idx, n, boxes, K))) / size
         centre = centre_from_box_offset(boxes, offset)
         K = np.asarray(K, dtype=np.float64)
+        if self.rotation_frame == "ray":
+            R = ray_rotation(centre, K) @ R
         if K.ndim == 2:
             t = translation_from_centre(centre, tz, K)
         else:

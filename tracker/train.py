@@ -14,7 +14,7 @@ import numpy as np
 
 from .bop import load_models_info, symmetry_transforms
 from .errors import UserError
-from .geometry import box_offset_of_centre, focal_mean, project, rotation_error_deg
+from .geometry import box_offset_of_centre, centre_from_box_offset, focal_mean, rotation_error_deg
 from .overlay import LMO_NAMES
 from .regressors import (Codebook, DistanceKNN, NumpyMLP, PoseHead, apparent_size, centre_inputs,
                          distance_inputs, rotation_inputs)
@@ -57,6 +57,55 @@ def choose_knn(Xtr, ytr, Xva, size_va, centre_va_t, t_va, K_va, log=print):
     log(f"distance KNN: k={best[1]}, box weight {best[2]}: median translation error {best[0]:.1f} mm (validation)")
     return DistanceKNN(k=best[1], box_weight=best[2]).fit(Xtr, ytr), {"k": best[1], "box_weight": best[2],
                                                                         "val_te_median_mm": best[0]}
+
+
+def fit_heads(mu, cs, obj_ids, models_info, tr, va, rng, reg_minutes: float = 4.0, codebook_per_object: int = 1500,
+              seed: int = 0, log=print):
+    """The regressors and the AAE codebook on frozen latent codes ``mu`` of the crops ``cs``.
+
+    Rotations are learnt relative to the viewing ray through the object's centre (the crop
+    shows that rotation; ``PoseHead`` turns it back through the estimated centre). Returns
+    ``(head, codebook, knn_info, synthetic validation figures)``."""
+    lut = {o: i for i, o in enumerate(obj_ids)}
+    idx = np.array([lut[int(o)] for o in cs.obj_id])
+    n_obj = len(obj_ids)
+    symR = _sym_rotations(idx, obj_ids, models_info)
+    K = cs.K
+    centres = cs.centres()
+    R_ray = cs.R_ray()  # the rotation the crop shows
+    offsets = box_offset_of_centre(cs.box, centres)
+    size_feat = apparent_size(cs.box, K)
+
+    log("rotation MLP (6D, L1 on R, symmetry-aware, relative to the viewing ray) ...")
+    rot = NumpyMLP(hidden=(256, 256), loss="l1_rotation", epochs=300, weight_decay=1e-2, minutes=reg_minutes,
+                   seed=seed).fit(rotation_inputs(mu[tr], idx[tr], n_obj), R_ray[tr], symR[tr],
+                                  rotation_inputs(mu[va], idx[va], n_obj), R_ray[va], symR[va], log=log)
+    log(f"rotation MLP: best validation epoch {rot.best_epoch_}")
+    log("centre MLP ...")
+    cen = NumpyMLP(hidden=(256,), loss="l1", epochs=300, weight_decay=1e-2, minutes=reg_minutes / 2, seed=seed).fit(
+        centre_inputs(mu[tr], idx[tr], n_obj, cs.box[tr], K[tr]), offsets[tr], None,
+        centre_inputs(mu[va], idx[va], n_obj, cs.box[va], K[va]), offsets[va], log=log)
+    cen_va = centre_from_box_offset(cs.box[va], cen.predict(centre_inputs(mu[va], idx[va], n_obj, cs.box[va], K[va])))
+    dist, knn_info = choose_knn(distance_inputs(mu[tr], idx[tr], n_obj, cs.box[tr], K[tr]),
+                                np.log(cs.t[tr, 2] * size_feat[tr]),
+                                distance_inputs(mu[va], idx[va], n_obj, cs.box[va], K[va]), size_feat[va],
+                                cen_va, cs.t[va], K[va], log=log)
+    # AAE baseline: codebook of training views (subsampled per object to keep the bundle small)
+    cb_idx = np.concatenate([rng.permutation(tr[idx[tr] == i])[:codebook_per_object] for i in range(n_obj)])
+    codebook = Codebook().fit(mu[cb_idx], cs.obj_id[cb_idx], R_ray[cb_idx], cs.t[cb_idx, 2] * size_feat[cb_idx])
+    head = PoseHead(obj_ids, rot, cen, dist, rotation_frame="ray")
+
+    val = {}
+    for mode in ("regression", "aae"):
+        h = PoseHead(obj_ids, rot, cen, dist, codebook, rotation_frame="ray")
+        R_va, t_va = h.predict(mu[va], cs.obj_id[va], cs.box[va], K[va], mode=mode)
+        re = np.array([min(rotation_error_deg(R_va[i], cs.R[va][i] @ S) for S in symR[va][i]) for i in range(len(va))])
+        te = np.linalg.norm(t_va - cs.t[va], axis=1)
+        val[mode] = {"re_median_deg": float(np.median(re)), "te_median_mm": float(np.median(te)),
+                     "re_lt_15deg": float(np.mean(re < 15))}
+        log(f"validation ({mode}): median RE {val[mode]['re_median_deg']:.1f} deg, "
+            f"median TE {val[mode]['te_median_mm']:.1f} mm")
+    return head, codebook, knn_info, val
 
 
 def export_encoder(model, size: int, n_cond: int, path: Path, x_check: np.ndarray, c_check=None) -> float:
@@ -131,49 +180,13 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
     cond = c_all if method == "cvam" else None
     mu = encode_all(model, cs.x, cond)
 
-    # ---- regressors (camera-independent features)
     mdir = Path(synth["config"]["models_dir"])
     models_info = load_models_info(models_info_path) if models_info_path else None
     if models_info is None:
         from .meshes import compute_models_info
         models_info = compute_models_info(load_models(mdir, obj_ids))
-    symR = _sym_rotations(idx, obj_ids, models_info)
-    K = cs.K
-    centres = np.stack([project(np.zeros((1, 3)), k, None, t)[0] for k, t in zip(K, cs.t)])
-    offsets = box_offset_of_centre(cs.box, centres)
-    size_feat = apparent_size(cs.box, K)
-
-    log("rotation MLP (6D, L1 on R, symmetry-aware) ...")
-    rot = NumpyMLP(hidden=(256, 256), loss="l1_rotation", epochs=300, weight_decay=1e-2, minutes=reg_minutes,
-                   seed=seed).fit(rotation_inputs(mu[tr], idx[tr], n_obj), cs.R[tr], symR[tr],
-                                  rotation_inputs(mu[va], idx[va], n_obj), cs.R[va], symR[va], log=log)
-    log(f"rotation MLP: best validation epoch {rot.best_epoch_}")
-    log("centre MLP ...")
-    cen = NumpyMLP(hidden=(256,), loss="l1", epochs=300, weight_decay=1e-2, minutes=reg_minutes / 2, seed=seed).fit(
-        centre_inputs(mu[tr], idx[tr], n_obj, cs.box[tr], K[tr]), offsets[tr], None,
-        centre_inputs(mu[va], idx[va], n_obj, cs.box[va], K[va]), offsets[va], log=log)
-    from .geometry import centre_from_box_offset
-    cen_va = centre_from_box_offset(cs.box[va], cen.predict(centre_inputs(mu[va], idx[va], n_obj, cs.box[va], K[va])))
-    dist, knn_info = choose_knn(distance_inputs(mu[tr], idx[tr], n_obj, cs.box[tr], K[tr]),
-                                np.log(cs.t[tr, 2] * size_feat[tr]),
-                                distance_inputs(mu[va], idx[va], n_obj, cs.box[va], K[va]), size_feat[va],
-                                cen_va, cs.t[va], K[va], log=log)
-    # AAE baseline: codebook of training views (subsampled per object to keep the bundle small)
-    cb_idx = np.concatenate([rng.permutation(tr[idx[tr] == i])[:codebook_per_object] for i in range(n_obj)])
-    codebook = Codebook().fit(mu[cb_idx], cs.obj_id[cb_idx], cs.R[cb_idx], cs.t[cb_idx, 2] * size_feat[cb_idx])
-    head = PoseHead(obj_ids, rot, cen, dist)
-
-    # ---- validation figures (synthetic)
-    val = {}
-    for mode in ("regression", "aae"):
-        h = PoseHead(obj_ids, rot, cen, dist, codebook)
-        R_va, t_va = h.predict(mu[va], cs.obj_id[va], cs.box[va], K[va], mode=mode)
-        re = np.array([min(rotation_error_deg(R_va[i], cs.R[va][i] @ S) for S in symR[va][i]) for i in range(len(va))])
-        te = np.linalg.norm(t_va - cs.t[va], axis=1)
-        val[mode] = {"re_median_deg": float(np.median(re)), "te_median_mm": float(np.median(te)),
-                     "re_lt_15deg": float(np.mean(re < 15))}
-        log(f"validation ({mode}): median RE {val[mode]['re_median_deg']:.1f} deg, "
-            f"median TE {val[mode]['te_median_mm']:.1f} mm")
+    head, codebook, knn_info, val = fit_heads(mu, cs, obj_ids, models_info, tr, va, rng, reg_minutes=reg_minutes,
+                                              codebook_per_object=codebook_per_object, seed=seed, log=log)
 
     # ---- export (a detector already in the bundle, for the same objects, is kept)
     kept_detector = None
@@ -235,4 +248,52 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
     add_overlay_meshes(out, OVERLAY_FACES, log=lambda *a: None)  # light meshes for the live overlay
     total = sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
     log(f"bundle {out}: {total / 1e6:.1f} MB, {(time.perf_counter() - t0) / 60:.1f} min in all")
+    return manifest
+
+
+def refit_heads(model_dir, data_dir, out_dir=None, seed: int = 0, reg_minutes: float = 4.0,
+                codebook_per_object: int = 1500, log=print, command: str | None = None) -> dict:
+    """Refit a bundle's regressors and AAE codebook on its frozen encoder (ONNX), without
+    retraining the autoencoder; writes the bundle to ``out_dir`` (default: in place)."""
+    _torch()  # the MLPs train with torch
+    from .bundle import read_verified_manifest, write_manifest
+    from .crops import bundle_training_crops, train_val_split
+    from .estimator import PoseEstimator
+    t0 = time.perf_counter()
+    est = PoseEstimator(model_dir, threads=2, single_thread_math=False)
+    src = est.bundle
+    out = Path(out_dir) if out_dir else src.root
+    if not (Path(data_dir) / "synth_config.json").is_file():
+        raise UserError(f"{data_dir}: no synth_config.json; make training data with 'app.py synth'")
+    cs = bundle_training_crops(src.root, src.manifest, data_dir, seed=seed, log=log)
+    unknown = sorted(set(np.unique(cs.obj_id).tolist()) - set(est.obj_ids))
+    if unknown:
+        raise UserError(f"{data_dir}: objects {unknown} are not in the bundle {model_dir}")
+    mu = est.encode_crops(cs.x, cs.obj_id)
+    log(f"encoded {len(cs)} crops in {time.perf_counter() - t0:.0f} s")
+    rng = np.random.default_rng(seed)
+    rng.permutation(len(cs))  # the draws of train_bundle, so the codebook views are the same
+    tr, va = train_val_split(len(cs), seed)
+    models_info = load_models_info(src.path("models_info"))
+    head, codebook, knn_info, val = fit_heads(mu, cs, est.obj_ids, models_info, tr, va, rng, reg_minutes=reg_minutes,
+                                              codebook_per_object=codebook_per_object, seed=seed, log=log)
+    if out.resolve() != src.root.resolve():
+        if out.exists():
+            shutil.rmtree(out)
+        shutil.copytree(src.root, out)
+    import joblib
+    joblib.dump(head, out / src.manifest["artefacts"]["pose_head"], compress=3)
+    joblib.dump(codebook, out / src.manifest["artefacts"]["codebook"], compress=3)
+
+    m = {k: v for k, v in src.manifest.items() if k not in ("files", "format")}
+    m["name"] = out.name
+    m["training"] = {**m["training"], "knn": knn_info}
+    m["validation_synthetic"] = val
+    m["heads"] = {"rotation_frame": head.rotation_frame, "data": str(data_dir), "seed": seed,
+                      "reg_minutes": reg_minutes, "minutes": round((time.perf_counter() - t0) / 60, 1),
+                  "command": command or "app.py " + " ".join(sys.argv[1:]),
+                  "created": time.strftime("%Y-%m-%d %H:%M:%S")}
+    write_manifest(out, m)
+    manifest = read_verified_manifest(out)
+    log(f"bundle {out}: heads refitted in {(time.perf_counter() - t0) / 60:.1f} min")
     return manifest
