@@ -137,3 +137,42 @@ def test_sphere_prior_runs(data_dir, tmp_path):
     assert rep.images == 2
     scene = load_scene(tmp_path / "000000", require_gt=True)
     assert all(len(v) >= 1 for v in scene.gt.values())
+
+
+def _table_camera(elevation_deg, dist=900.0):
+    from tracker.synth.priors import look_at
+    el = np.radians(elevation_deg)
+    eye = dist * np.array([np.cos(el), 0.0, np.sin(el)])
+    R = look_at(eye, np.zeros(3), np.array([0.0, 0.0, 1.0]))
+    return R, -R @ eye
+
+
+def test_table_surface_lies_on_the_plane_the_objects_stand_on():
+    from tracker.camera import LMO_K
+    from tracker.synth.randomise import _table_point, table_surface
+    rng = np.random.default_rng(0)
+    tex = rng.integers(0, 255, (480, 640, 3), dtype=np.uint8)
+    R, t = _table_camera(30.0)
+    # a point on the table projects to a pixel whose ray meets the table at that point
+    P = np.array([[120.0, -80.0, 0.0]])
+    uv = project(P, LMO_K, R, t)[0]
+    X, Y, lam = _table_point(np.array(uv[0]), np.array(uv[1]), LMO_K, R, t)
+    assert lam > 0 and np.allclose([X, Y], P[0, :2], atol=1e-6)
+    img, mask = table_surface(tex, LMO_K, R, t, rng)
+    assert img.shape == tex.shape and mask.dtype == bool
+    assert mask[-1].all() and not mask[0].any()  # the table below, beyond its edge / the horizon above
+    top_down, _ = _table_camera(89.0, 600.0)
+    assert table_surface(tex, LMO_K, top_down, _table_camera(89.0, 600.0)[1], rng)[1].all()
+
+
+def test_shadows_darken_the_table_near_the_object_only():
+    from tracker.camera import LMO_K
+    from tracker.synth.randomise import cast_shadows
+    R, t = _table_camera(45.0)
+    box = np.array([[x, y, z] for x in (-40, 40) for y in (-40, 40) for z in (0, 120)], float)  # on the table
+    img = np.full((480, 640, 3), 200, np.uint8)
+    out = cast_shadows(img, [box], np.array([0.3, 0.2, -1.0]), LMO_K, R, t, np.random.default_rng(1))
+    assert (out <= img).all() and (out < 150).any()
+    foot = project(np.array([[0.0, 0.0, 0.0]]), LMO_K, R, t)[0].round().astype(int)
+    assert out[foot[1], foot[0]].max() < 180  # dark at the object's foot
+    assert (out[:40] == 200).all()  # untouched far away

@@ -33,8 +33,8 @@ from ..camera import LMO_K
 from ..errors import UserError
 from ..visibility import scene_visibility
 from . import priors
-from .randomise import (Backgrounds, camera_effects, composite, distractor_meshes, jitter_colours,
-                        list_backgrounds, sample_lights)
+from .randomise import (Backgrounds, camera_effects, cast_shadows, composite, distractor_meshes, jitter_colours,
+                        list_backgrounds, sample_lights, table_surface)
 
 CHUNK = 1000
 DEPTH_SCALE = 0.1  # mm per unit of the written depth PNGs (up to 6.5 m)
@@ -53,6 +53,9 @@ class SynthConfig:
     objects_per_image: tuple = (3, 8)
     distractors_per_image: tuple = (0, 5)
     p_occluder: float = 0.35
+    # 'table' prior: how often the table's surface is drawn (a photo laid on the plane the
+    # objects stand on, with their soft shadows) instead of a photo behind floating objects
+    p_table: float = 0.7
     crop_size: int = 128  # clean targets, rendered in the visibility window (visibility.WINDOW_PAD)
     jpeg_quality: tuple = (70, 95)
     obj_ids: list | None = None
@@ -116,7 +119,8 @@ def _init_worker(cfg_dict: dict):
 
 
 def _sample_instances(rng, cfg: SynthConfig):
-    """Targets and distractors with their poses: [(renderer id, R, t)], number of targets."""
+    """Targets and distractors with their poses: [(renderer id, R, t)], the number of targets,
+    the number standing on the table (the first ones) and the table's pose (None: no table)."""
     obj_ids, K = _W["obj_ids"], _W["K"]
     lo, hi = cfg.objects_per_image
     n_t = int(min(len(obj_ids), rng.integers(lo, hi + 1)))
@@ -125,17 +129,26 @@ def _sample_instances(rng, cfg: SynthConfig):
     dis = [DISTRACTOR_BASE + int(x) for x in rng.integers(0, _W["n_dis"], n_d)]
     ids = targets + dis
     if cfg.prior == "table":
-        poses = priors.sample_table_scene(rng, [_W["verts"][i] for i in ids], [_W["radius"][i] for i in ids])
+        poses, table = priors.sample_table_scene(rng, [_W["verts"][i] for i in ids], [_W["radius"][i] for i in ids])
     else:
-        poses = priors.sample_sphere_scene(rng, [_W["radius"][i] for i in ids], K, (cfg.width, cfg.height))
+        poses, table = priors.sample_sphere_scene(rng, [_W["radius"][i] for i in ids], K, (cfg.width, cfg.height)), None
     inst = [(i, R, t) for i, (R, t) in zip(ids, poses)]
     if rng.random() < cfg.p_occluder and targets:
         for _ in range(int(rng.integers(1, 3))):
             tgt = inst[int(rng.integers(n_t))]
             R, t = priors.table_occluder_pose(rng, tgt[2])
             inst.append((DISTRACTOR_BASE + int(rng.integers(_W["n_dis"])), R, t))
-    return inst, n_t
+    return inst, n_t, len(ids), table
 
+
+def _table_background(bg, rng, cfg: SynthConfig, inst, n_on_table, table, light_dir_c):
+    """The table's surface over the photo where the camera sees it, with the shadows of the
+    objects standing on it."""
+    R_w2c, t_w2c = table
+    top, mask = table_surface(_W["bgs"].sample(rng, cfg.width, cfg.height), _W["K"], R_w2c, t_w2c, rng)
+    bg = np.where(mask[..., None], top, bg)
+    world = [((_W["verts"][i] @ R.T) + t - t_w2c) @ R_w2c for i, R, t in inst[:n_on_table]]
+    return cast_shadows(bg, world, R_w2c.T @ np.asarray(light_dir_c, np.float64), _W["K"], R_w2c, t_w2c, rng)
 
 def render_one(index: int, out_root: str) -> dict:
     """Render, annotate and write global image ``index``; returns its JSON records."""
@@ -144,7 +157,7 @@ def render_one(index: int, out_root: str) -> dict:
     rng = np.random.default_rng([cfg.seed, index])
     chunk, im_id = divmod(index, CHUNK)
     root = Path(out_root) / f"{chunk:06d}"
-    inst, n_t = _sample_instances(rng, cfg)
+    inst, n_t, n_on_table, table = _sample_instances(rng, cfg)
     scene, crop_r = _W["scene"], _W["crop"]
 
     lights, ambient = sample_lights(rng)
@@ -171,6 +184,8 @@ def render_one(index: int, out_root: str) -> dict:
         windows.append([win.x0, win.y0, win.side])
 
     bg = _W["bgs"].sample(rng, cfg.width, cfg.height)
+    if table is not None and rng.random() < cfg.p_table:
+        bg = _table_background(bg, rng, cfg, inst, n_on_table, table, lights[0][0])
     img = composite(bg, rgb, depth > 0)
     img = camera_effects(img, rng)
     q = int(rng.integers(cfg.jpeg_quality[0], cfg.jpeg_quality[1] + 1))

@@ -2,7 +2,8 @@
 
 ``table`` (the LM-O case): objects rest upright on a plane (model z = the plane's normal,
 as LM-O models are stored), any yaw, a small tilt; the camera looks at the table from
-0.6-1.5 m at an elevation of 15-85 degrees, any azimuth, a small roll.
+0.6-1.5 m at an elevation of 15-85 degrees, any azimuth, a small roll. The table's pose
+comes back too, so the scene can draw its surface and the objects' shadows on it.
 
 ``sphere`` (hand-held objects): every object takes a uniformly random orientation in
 SO(3) at a random place in the view frustum, 0.4-1.5 m away.
@@ -56,7 +57,8 @@ def sample_table_scene(rng: np.random.Generator, vertices: list[np.ndarray], rad
     """Poses of objects standing on one table seen by one camera.
 
     ``vertices``/``radii``: per object to place (targets first, then distractors).
-    Returns a list of (R_m2c, t_m2c) in the same order.
+    Returns a list of (R_m2c, t_m2c) in the same order, and the table's pose in the camera
+    (R_w2c, t_w2c: world z = 0 is the table's surface, z up).
     """
     el = np.radians(rng.uniform(*prior.elevation_deg))
     az = rng.uniform(0, 2 * np.pi)
@@ -84,7 +86,7 @@ def sample_table_scene(rng: np.random.Generator, vertices: list[np.ndarray], rad
         R_ow = (tilt * yaw).as_matrix()
         t_ow = np.array([xy[0], xy[1], resting_offset(v, R_ow)])
         poses.append((R_w2c @ R_ow, R_w2c @ t_ow + t_w2c))
-    return poses
+    return poses, (R_w2c, t_w2c)
 
 
 def sample_sphere_scene(rng: np.random.Generator, radii: list[float], K: np.ndarray, size: tuple[int, int],

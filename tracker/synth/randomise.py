@@ -88,6 +88,70 @@ def procedural_texture(rng: np.random.Generator, width: int, height: int) -> np.
     return np.clip(img * 255, 0, 255).astype(np.uint8)
 
 
+# --------------------------------------------------------------------------- the table
+
+
+def _table_point(u, v, K, R_w2c, t_w2c):
+    """Where the viewing rays through pixels (u, v) meet the table (world z = 0): world
+    (X, Y) and the ray parameter (> 0 in front of the camera)."""
+    eye = -R_w2c.T @ t_w2c
+    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1) @ R_w2c  # R^T d
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lam = -eye[2] / rays[..., 2]
+    return eye[0] + lam * rays[..., 0], eye[1] + lam * rays[..., 1], lam
+
+
+def table_surface(texture: np.ndarray, K: np.ndarray, R_w2c: np.ndarray, t_w2c: np.ndarray,
+                  rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """The table top seen by the camera: ``texture`` (RGB) laid on the plane world z = 0,
+    tiled (mirrored) at a random scale and turn, ending at a random table edge 0.5-1.5 m from
+    the centre; returns (image, mask) at the texture's size. Beyond the edge and above the
+    horizon the mask is False (the photo behind shows there)."""
+    h, w = texture.shape[:2]
+    v, u = np.mgrid[0:h, 0:w].astype(np.float32)
+    X, Y, lam = _table_point(u, v, np.asarray(K, np.float64), R_w2c, t_w2c)
+    half = rng.uniform(500, 1500, 2)
+    mask = (lam > 0) & (np.abs(X) < half[0]) & (np.abs(Y) < half[1])
+    mm_per_px = rng.uniform(400, 1500) / w  # the texture spans 0.4-1.5 m before it repeats
+    a = rng.uniform(0, 2 * np.pi)
+    ca, sa = np.cos(a), np.sin(a)
+    mx = np.where(mask, (ca * X - sa * Y) / mm_per_px + w / 2, -1).astype(np.float32)
+    my = np.where(mask, (sa * X + ca * Y) / mm_per_px + h / 2, -1).astype(np.float32)
+    img = cv2.remap(texture, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT_101)
+    # light falls off across the table, as under a lamp
+    shade = 1.0 + rng.uniform(-0.25, 0.25) * (u - w / 2) / w + rng.uniform(-0.25, 0.25) * (v - h / 2) / h
+    img = np.clip(img * shade[..., None], 0, 255).astype(np.uint8)
+    return img, mask
+
+
+def cast_shadows(img: np.ndarray, world_vertices: list[np.ndarray], light_dir_w: np.ndarray, K: np.ndarray,
+                 R_w2c: np.ndarray, t_w2c: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Soft shadows of objects standing on the table: each object's vertices (world, mm)
+    pushed along the light's direction down to z = 0, their outline filled, blurred and
+    darkening ``img`` (the table, before the objects are composited over it)."""
+    d = np.asarray(light_dir_w, np.float64)
+    d = d / np.linalg.norm(d)
+    if d[2] > -0.35:  # a grazing or upward light: shadows straight down (contact shadows)
+        d = np.array([d[0], d[1], 0.0]) * 0.5 + np.array([0.0, 0.0, -1.0])
+    shadow = np.zeros(img.shape[:2], np.float32)
+    for V in world_vertices:
+        V = V[:: max(1, len(V) // 400)]
+        P = V - (V[:, 2:3] / d[2]) * d  # along d down to the table
+        cam = P @ R_w2c.T + t_w2c
+        if np.any(cam[:, 2] <= 1.0):
+            continue
+        uv = cam[:, :2] / cam[:, 2:3] * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
+        if np.abs(uv).max() > 1e5:
+            continue
+        hull = cv2.convexHull(np.round(uv).astype(np.int32))
+        cv2.fillConvexPoly(shadow, hull, 1.0, lineType=cv2.LINE_AA)
+    if not shadow.any():
+        return img
+    shadow = cv2.GaussianBlur(shadow, (0, 0), rng.uniform(2.0, 8.0))
+    dark = 1.0 - rng.uniform(0.3, 0.65) * np.clip(shadow, 0, 1)
+    return (img * dark[..., None]).astype(np.uint8)
+
+
 # --------------------------------------------------------------------------- distractors
 
 
