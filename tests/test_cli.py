@@ -35,6 +35,10 @@ def test_bad_bundle_and_bad_source_are_one_line_errors(tmp_path, data_dir):
     p = run("eval", "--model", tmp_path, "--data", data_dir / "lmo" / "dev", "--json", tmp_path / "m.json")
     assert_one_line_error(p)
     assert "manifest.json" in p.stderr
+    p = run("refit-heads", "--model", REPO / "models" / "lmo", "--data", tmp_path, "--out", tmp_path / "b")
+    assert_one_line_error(p)
+    assert "synth_config.json" in p.stderr or "train" in p.stderr  # no training data (or no torch)
+    assert not (tmp_path / "b").exists()
 
 
 def test_calibrate_command(data_dir, tmp_path):

@@ -234,6 +234,7 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
                      "ae_minutes": round(hist["seconds"][-1] / 60, 1) if hist["seconds"] else 0.0, "total_minutes": round((time.perf_counter() - t0) / 60, 1),
                      "knn": knn_info, "seed": seed, "onnx_max_abs_diff": diff},
         "validation_synthetic": val,
+        "heads": {"rotation_frame": head.rotation_frame},
         "command": command or "app.py " + " ".join(sys.argv[1:]),
         "created": time.strftime("%Y-%m-%d %H:%M:%S"),
     }
