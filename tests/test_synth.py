@@ -116,6 +116,8 @@ def test_preview_montage(small_split, tmp_path):
 def test_bad_input(data_dir, tmp_path):
     with pytest.raises(UserError, match="positive"):
         generate(_cfg(data_dir), tmp_path / "a", 0, workers=1, progress=False)
+    with pytest.raises(UserError, match="p-table"):
+        generate(_cfg(data_dir, p_table=1.5), tmp_path / "a", 2, workers=1, progress=False)
     cfg = _cfg(data_dir)
     cfg.backgrounds_dir = str(tmp_path / "missing")
     with pytest.raises(UserError, match="backgrounds folder not found"):
@@ -176,3 +178,13 @@ def test_shadows_darken_the_table_near_the_object_only():
     foot = project(np.array([[0.0, 0.0, 0.0]]), LMO_K, R, t)[0].round().astype(int)
     assert out[foot[1], foot[0]].max() < 180  # dark at the object's foot
     assert (out[:40] == 200).all()  # untouched far away
+
+
+def test_the_table_changes_the_pixels_not_the_annotations(data_dir, tmp_path):
+    for p in (0.0, 1.0):
+        generate(_cfg(data_dir, seed=5, p_table=p), tmp_path / str(p), 2, workers=1, progress=False)
+    a, b = tmp_path / "0.0" / "000000", tmp_path / "1.0" / "000000"
+    for name in ("scene_gt.json", "scene_gt_info.json", "clean_crops.json"):
+        assert filecmp.cmp(a / name, b / name, shallow=False), name
+    ia, ib = (cv2.imread(str(d / "rgb" / "000000.jpg")).astype(int) for d in (a, b))
+    assert np.abs(ia - ib).mean() > 10  # the table's surface replaced the photo

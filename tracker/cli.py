@@ -92,7 +92,8 @@ def cmd_synth(args) -> int:
     from .synth.preview import preview
     obj_ids = [int(x) for x in args.obj_ids.split(",")] if args.obj_ids else None
     cfg = SynthConfig(models_dir=str(args.models), backgrounds_dir=str(args.backgrounds or shared_data() / "backgrounds"),
-                      seed=args.seed, prior=args.prior, obj_ids=obj_ids, mesh_faces=args.mesh_faces, depth=args.depth)
+                      seed=args.seed, prior=args.prior, obj_ids=obj_ids, mesh_faces=args.mesh_faces, depth=args.depth,
+                      p_table=args.p_table)
     rep = generate(cfg, args.out, args.images, workers=args.workers, command="app.py " + " ".join(sys.argv[1:]))
     state = "INTERRUPTED after" if rep.interrupted else "wrote"
     print(f"{state} {rep.images} images, {rep.instances} instances ({rep.crops_visib_ge_0_1} with visib >= 0.1) "
@@ -340,6 +341,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--backgrounds", help="folder of background photos (default: the shared data's)")
     s.add_argument("--prior", choices=["table", "sphere"], default="table",
                    help="pose prior: objects upright on a table (LM-O) or any orientation (hand-held)")
+    s.add_argument("--p-table", type=float, default=0.7, metavar="P",
+                   help="table prior: share of scenes with the table's surface and shadows drawn "
+                        "(0: photos behind floating objects, as data made before it existed)")
     s.add_argument("--obj-ids", help="comma-separated subset of the models' ids")
     s.add_argument("--workers", type=int, default=2, help="render processes")
     s.add_argument("--depth", action="store_true", help="also write depth images (depth/, for VSD)")

@@ -184,7 +184,7 @@ def render_one(index: int, out_root: str) -> dict:
         windows.append([win.x0, win.y0, win.side])
 
     bg = _W["bgs"].sample(rng, cfg.width, cfg.height)
-    if table is not None and rng.random() < cfg.p_table:
+    if table is not None and cfg.p_table > 0 and rng.random() < cfg.p_table:  # 0: the draws of before
         bg = _table_background(bg, rng, cfg, inst, n_on_table, table, lights[0][0])
     img = composite(bg, rgb, depth > 0)
     img = camera_effects(img, rng)
@@ -237,6 +237,8 @@ def generate(cfg: SynthConfig, out_dir, n_images: int, workers: int = 2, batch: 
         raise UserError(f"--images must be positive, got {n_images}")
     if cfg.prior not in priors.PRIORS:
         raise UserError(f"unknown prior '{cfg.prior}' (choose from {', '.join(priors.PRIORS)})")
+    if not 0.0 <= cfg.p_table <= 1.0:
+        raise UserError(f"--p-table must be between 0 and 1, got {cfg.p_table}")
     list_backgrounds(cfg.backgrounds_dir)  # fail early, in the parent
     from ..meshes import load_models
     models = load_models(cfg.models_dir, cfg.obj_ids)  # fail early (and warn once) on bad meshes
