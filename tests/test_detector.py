@@ -97,6 +97,18 @@ def tiny_detector_bundle(tiny_bundle, tmp_path_factory):
     return root
 
 
+def test_a_bundle_with_a_detector_can_train_another(tiny_detector_bundle, tiny_bundle, tmp_path):
+    from tracker.bundle import open_bundle
+    from tracker.detector_train import train_detector
+    root = tmp_path / "lmo"
+    shutil.copytree(tiny_detector_bundle, root)
+    before = open_bundle(root).manifest["files"]["detector.onnx"]["sha256"]
+    train_detector(tiny_bundle.parent / "split", root, minutes=0.02, width=4, batch=2, log=lambda *a: None)
+    after = open_bundle(root).manifest  # hashes verified: the new detector replaced the old one
+    assert after["detector"]["training"]["width"] == 4
+    assert after["files"]["detector.onnx"]["sha256"] != before
+
+
 def test_tiny_training_exports_and_loads(tiny_detector_bundle, lmo_dev):
     from tracker.bundle import open_bundle
     from tracker.detector import Detector

@@ -11,6 +11,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -235,7 +236,8 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     log(f"synthetic validation: AP {fmt_num(ap['ap'])}, AP50 {fmt_num(ap['ap50'])}, recall50 {fmt_num(ap['recall50'])}")
 
     path = root / spec.file
-    diff = export_detector(model, spec, path, normalise(images[va[:4]], spec))
+    staged = work / spec.file  # moved into the bundle only once the manifest is verified below
+    diff = export_detector(model, spec, staged, normalise(images[va[:4]], spec))
     log(f"{spec.file}: max |onnx - torch| = {diff:.2e}")
     if diff > 1e-4:
         raise UserError(f"exported detector differs from torch by {diff:.2e} (> 1e-4)")
@@ -246,7 +248,8 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
                      "validation_synthetic": ap, "command": command or "app.py " + " ".join(sys.argv[1:]),
                      "loss_history": state["history"][-20:]}
 
-    def change(manifest):
+    def change(manifest):  # the bundle as it was is verified; now replace its detector
+        shutil.move(staged, path)
         manifest["artefacts"] = dict(manifest.get("artefacts", {}), detector=spec.file)
         manifest["detector"] = d
     update_manifest(root, change)
