@@ -11,6 +11,7 @@ import numpy as np
 import trimesh
 
 from ..errors import UserError
+from ..geometry import project
 
 BG_EXTS = (".jpg", ".jpeg", ".png")
 
@@ -131,16 +132,15 @@ def cast_shadows(img: np.ndarray, world_vertices: list[np.ndarray], light_dir_w:
     darkening ``img`` (the table, before the objects are composited over it)."""
     d = np.asarray(light_dir_w, np.float64)
     d = d / np.linalg.norm(d)
-    if d[2] > -0.35:  # a grazing or upward light: shadows straight down (contact shadows)
+    if d[2] > -0.35:  # a grazing or upward light: shadows mostly straight down (contact shadows)
         d = np.array([d[0], d[1], 0.0]) * 0.5 + np.array([0.0, 0.0, -1.0])
     shadow = np.zeros(img.shape[:2], np.float32)
     for V in world_vertices:
         V = V[:: max(1, len(V) // 400)]
         P = V - (V[:, 2:3] / d[2]) * d  # along d down to the table
-        cam = P @ R_w2c.T + t_w2c
-        if np.any(cam[:, 2] <= 1.0):
+        if np.any((P @ R_w2c.T + t_w2c)[:, 2] <= 1.0):  # partly behind the camera
             continue
-        uv = cam[:, :2] / cam[:, 2:3] * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
+        uv = project(P, K, R_w2c, t_w2c)
         if np.abs(uv).max() > 1e5:
             continue
         hull = cv2.convexHull(np.round(uv).astype(np.int32))
