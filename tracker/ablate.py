@@ -63,9 +63,6 @@ def ablate(model_dir, data_dir, json_path=None, mlp_minutes: float = 1.0, max_tr
     est = PoseEstimator(model_dir)
     b = est.bundle
     cs = bundle_training_crops(model_dir, b.manifest, data_dir, seed=seed, log=log)
-    unknown = sorted(set(np.unique(cs.obj_id).tolist()) - set(est.obj_ids))
-    if unknown:
-        raise UserError(f"{data_dir}: objects {unknown} are not in the bundle {model_dir}")
     tr, va = train_val_split(len(cs), seed)
     if max_train and len(tr) > max_train:
         tr = np.sort(np.random.default_rng(seed).choice(tr, max_train, replace=False))
@@ -82,7 +79,8 @@ def ablate(model_dir, data_dir, json_path=None, mlp_minutes: float = 1.0, max_tr
     diam = np.array([objs[int(o)]["diameter"] for o in cs.obj_id[va]])
     Xr_tr, Xr_va = rotation_inputs(mu[tr], idx[tr], n), rotation_inputs(mu[va], idx[va], n)
 
-    R_obs = cs.R_ray()  # what the crop shows; with the true centre, errors equal those in the camera frame
+    centres = cs.centres()
+    R_obs = cs.R_ray(centres)  # what the crop shows; with the true centre, errors equal those in the camera frame
 
     def rot_row(name, R_va):
         add = _add_true_t(R_va, R_obs[va], cs.obj_id[va], points, symmetric)
@@ -113,7 +111,6 @@ def ablate(model_dir, data_dir, json_path=None, mlp_minutes: float = 1.0, max_tr
     t41.append(rot_row("NNS (codebook, cosine)", cb.predict(mu[va], cs.obj_id[va])[0]))
 
     log("Table 4.2a - centre")
-    centres = cs.centres()
     off = box_offset_of_centre(cs.box, centres)
     Xc_tr = centre_inputs(mu[tr], idx[tr], n, cs.box[tr], cs.K[tr])
     Xc_va = centre_inputs(mu[va], idx[va], n, cs.box[va], cs.K[va])

@@ -115,16 +115,20 @@ def cmd_score(args) -> int:
     return 0
 
 
+def _print_validation(out, manifest: dict) -> None:
+    v = manifest["validation_synthetic"]
+    print(f"wrote {out}: synthetic validation median RE {v['regression']['re_median_deg']:.1f} deg "
+          f"(AAE {v['aae']['re_median_deg']:.1f}), median TE {v['regression']['te_median_mm']:.1f} mm "
+          f"(AAE {v['aae']['te_median_mm']:.1f})")
+
+
 def cmd_train(args) -> int:
     from .train import train_bundle
     m = train_bundle(args.data, args.out, method=args.method, size=args.size, latent=args.latent,
                      minutes=args.minutes, seed=args.seed, max_images=args.max_images,
                      models_info_path=args.models_info, reg_minutes=args.reg_minutes, encoder=args.encoder,
                      command="app.py " + " ".join(sys.argv[1:]))
-    v = m["validation_synthetic"]
-    print(f"wrote {args.out}: synthetic validation median RE {v['regression']['re_median_deg']:.1f} deg "
-          f"(AAE {v['aae']['re_median_deg']:.1f}), median TE {v['regression']['te_median_mm']:.1f} mm "
-          f"(AAE {v['aae']['te_median_mm']:.1f})")
+    _print_validation(args.out, m)
     return 0
 
 
@@ -132,10 +136,7 @@ def cmd_refit_heads(args) -> int:
     from .train import refit_heads
     m = refit_heads(args.model, args.data, out_dir=args.out, seed=args.seed, reg_minutes=args.reg_minutes,
                     command="app.py " + " ".join(sys.argv[1:]))
-    v = m["validation_synthetic"]
-    print(f"wrote {args.out or args.model}: synthetic validation median RE {v['regression']['re_median_deg']:.1f} deg "
-          f"(AAE {v['aae']['re_median_deg']:.1f}), median TE {v['regression']['te_median_mm']:.1f} mm "
-          f"(AAE {v['aae']['te_median_mm']:.1f})")
+    _print_validation(args.out or args.model, m)
     return 0
 
 

@@ -41,10 +41,12 @@ class CropSet:
         """(N, 2) projected object origins in pixels."""
         return np.stack([project(np.zeros((1, 3)), k, None, t)[0] for k, t in zip(self.K, self.t)])
 
-    def R_ray(self) -> np.ndarray:
+    def R_ray(self, centres: np.ndarray | None = None) -> np.ndarray:
         """(N, 3, 3) the rotations relative to the viewing ray through the object's centre:
-        what the crop shows (:func:`tracker.geometry.ray_rotation`)."""
-        return np.swapaxes(ray_rotation(self.centres(), self.K), 1, 2) @ self.R
+        what the crop shows (:func:`tracker.geometry.ray_rotation`). ``centres``: the
+        caller's :meth:`centres`, if it has them."""
+        c = self.centres() if centres is None else centres
+        return np.swapaxes(ray_rotation(c, self.K), 1, 2) @ self.R
 
     def subset(self, idx) -> "CropSet":
         return CropSet(*(getattr(self, f)[idx] for f in self.__dataclass_fields__))
@@ -136,7 +138,8 @@ def build_training_crops(split_dir, size: int, seed: int = 0, jitter: bool = Tru
 
 def bundle_training_crops(model_dir, manifest: dict, data_dir, seed: int = 0, log=print) -> CropSet:
     """The crops of ``data_dir`` at a bundle's input size: training's cached crops when the
-    bundle was trained on this very split, else cut now (same seed, same boxes)."""
+    bundle was trained on this very split, else cut now (same seed, same boxes). Objects the
+    bundle does not know are an error."""
     size = int(manifest["input_size"])
     cache = Path(model_dir).parent / (Path(model_dir).name + ".work") / f"crops_{size}_seed{seed}_all.npz"
     trained_on = manifest.get("training", {}).get("data")
@@ -146,4 +149,7 @@ def bundle_training_crops(model_dir, manifest: dict, data_dir, seed: int = 0, lo
     else:
         cs = build_training_crops(data_dir, size, seed=seed)
         log(f"{len(cs)} crops (cut now)")
+    unknown = sorted(set(np.unique(cs.obj_id).tolist()) - {int(o["id"]) for o in manifest["objects"]})
+    if unknown:
+        raise UserError(f"{data_dir}: objects {unknown} are not in the bundle {model_dir}")
     return cs

@@ -72,7 +72,7 @@ def fit_heads(mu, cs, obj_ids, models_info, tr, va, rng, reg_minutes: float = 4.
     symR = _sym_rotations(idx, obj_ids, models_info)
     K = cs.K
     centres = cs.centres()
-    R_ray = cs.R_ray()  # the rotation the crop shows
+    R_ray = cs.R_ray(centres)  # the rotation the crop shows
     offsets = box_offset_of_centre(cs.box, centres)
     size_feat = apparent_size(cs.box, K)
 
@@ -267,9 +267,6 @@ def refit_heads(model_dir, data_dir, out_dir=None, seed: int = 0, reg_minutes: f
     if not (Path(data_dir) / "synth_config.json").is_file():
         raise UserError(f"{data_dir}: no synth_config.json; make training data with 'app.py synth'")
     cs = bundle_training_crops(src.root, src.manifest, data_dir, seed=seed, log=log)
-    unknown = sorted(set(np.unique(cs.obj_id).tolist()) - set(est.obj_ids))
-    if unknown:
-        raise UserError(f"{data_dir}: objects {unknown} are not in the bundle {model_dir}")
     mu = est.encode_crops(cs.x, cs.obj_id)
     log(f"encoded {len(cs)} crops in {time.perf_counter() - t0:.0f} s")
     rng = np.random.default_rng(seed)
@@ -291,7 +288,7 @@ def refit_heads(model_dir, data_dir, out_dir=None, seed: int = 0, reg_minutes: f
     m["training"] = {**m["training"], "knn": knn_info}
     m["validation_synthetic"] = val
     m["heads"] = {"rotation_frame": head.rotation_frame, "data": str(data_dir), "seed": seed,
-                      "reg_minutes": reg_minutes, "minutes": round((time.perf_counter() - t0) / 60, 1),
+                  "reg_minutes": reg_minutes, "minutes": round((time.perf_counter() - t0) / 60, 1),
                   "command": command or "app.py " + " ".join(sys.argv[1:]),
                   "created": time.strftime("%Y-%m-%d %H:%M:%S")}
     write_manifest(out, m)
