@@ -196,6 +196,35 @@ def test_distance_knn_equals_scikit_learns_brute_force():
     np.testing.assert_allclose(m.predict(Q), ref, atol=1e-5)
 
 
+def _distance_case(X, y):
+    """Validation arguments of choose_distance for crops at the image centre with log(Tz size) = y."""
+    from tracker.geometry import translation_from_centre
+    K = np.array([[572.4, 0, 325.3], [0, 573.6, 242.0], [0, 0, 1]])
+    size = np.full(len(y), 0.1)
+    centre = np.tile([320.0, 240.0], (len(y), 1))
+    t = np.stack([translation_from_centre(c, z, K) for c, z in zip(centre, np.exp(y) / size)])
+    return size, centre, t, np.repeat(K[None], len(y), 0)
+
+
+def test_choose_distance_keeps_the_head_with_the_lower_validation_error():
+    from tracker.regressors import DistanceKNN, NumpyMLP
+    from tracker.train import choose_distance
+    rng = np.random.default_rng(0)
+    X = rng.normal(size=(1500, 20)).astype(np.float32)
+    w = rng.normal(size=20) * 0.05
+    y = 6.0 + X @ w  # smooth in 20 dimensions: an MLP generalises, nearest neighbours do not
+    tr, va = np.arange(1200), np.arange(1200, 1500)
+    m, info = choose_distance(X[tr], y[tr], X[va], y[va], *_distance_case(X[va], y[va]), reg_minutes=0.2,
+                              log=lambda *a: None)
+    assert isinstance(m, NumpyMLP) and info["head"] == "mlp"
+    assert info["val_te_median_mm"] < info["knn"]["val_te_median_mm"]
+    # arbitrary targets asked again at the training points: only the neighbours remember them
+    y2 = 6.0 + rng.normal(size=1500) * 0.3
+    m, info = choose_distance(X[tr], y2[tr], X[tr[:300]], y2[tr[:300]], *_distance_case(X[tr[:300]], y2[tr[:300]]),
+                              reg_minutes=0.05, log=lambda *a: None)
+    assert isinstance(m, DistanceKNN) and info["head"] == "knn" and info["val_te_median_mm"] < 1e-3
+
+
 class _Const:
     def __init__(self, value):
         self.value = np.asarray(value, dtype=float)
@@ -222,6 +251,9 @@ def test_pose_head_turns_ray_frame_rotations_into_the_camera_frame():
     assert np.allclose(np.swapaxes(ray_rotation(centres, K), 1, 2) @ t[..., None],
                        np.c_[np.zeros((3, 2)), np.linalg.norm(t, axis=1)][..., None], atol=1e-6)
     assert rotation_error_deg(R[2], R_a) > 20  # a corner object is seen turned
+    # an MLP distance head predicts (N, 1): the same translations
+    head_mlp = PoseHead([1], _Const(R_a), _Const(off), _Const([np.log(500.0)]), rotation_frame="ray")
+    assert np.allclose(head_mlp.predict(np.zeros((3, 4)), [1, 1, 1], boxes, K)[1], t)
     # a head pickled before the option existed predicts camera-frame rotations, as trained
     del head.__dict__["rotation_frame"]
     R_old, t_old = head.predict(np.zeros((3, 4)), [1, 1, 1], boxes, K)

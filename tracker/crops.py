@@ -57,6 +57,10 @@ class CropSet:
         return path
 
     @classmethod
+    def concat(cls, *sets: "CropSet") -> "CropSet":
+        return cls(*(np.concatenate([getattr(c, f) for c in sets]) for f in cls.__dataclass_fields__))
+
+    @classmethod
     def load(cls, path) -> "CropSet":
         with np.load(path) as z:
             return cls(**{f: z[f] for f in cls.__dataclass_fields__})
@@ -136,19 +140,26 @@ def build_training_crops(split_dir, size: int, seed: int = 0, jitter: bool = Tru
                    np.stack(cols["t"]), np.stack(cols["box"]), np.stack(cols["K"]), np.array(cols["visib"]))
 
 
-def bundle_training_crops(model_dir, manifest: dict, data_dir, seed: int = 0, log=print) -> CropSet:
+def crops_cache_path(work_dir, size: int, seed: int, max_images: int | None = None, jitter: bool = True) -> Path:
+    """Where training caches the crops of its split (``<bundle>.work/``)."""
+    return Path(work_dir) / f"crops_{size}_seed{seed}_{max_images or 'all'}{'' if jitter else '_exact'}.npz"
+
+
+def bundle_training_crops(model_dir, manifest: dict, data_dir, seed: int = 0, jitter: bool = True,
+                          log=print) -> CropSet:
     """The crops of ``data_dir`` at a bundle's input size: training's cached crops when the
     bundle was trained on this very split, else cut now (same seed, same boxes). Objects the
-    bundle does not know are an error."""
+    bundle does not know are an error. ``jitter=False``: on the exact visible boxes."""
     size = int(manifest["input_size"])
-    cache = Path(model_dir).parent / (Path(model_dir).name + ".work") / f"crops_{size}_seed{seed}_all.npz"
+    cache = crops_cache_path(Path(model_dir).parent / (Path(model_dir).name + ".work"), size, seed, jitter=jitter)
     trained_on = manifest.get("training", {}).get("data")
+    kind = "jittered" if jitter else "exact"
     if trained_on is not None and Path(trained_on).resolve() == Path(data_dir).resolve() and cache.is_file():
         cs = CropSet.load(cache)
-        log(f"{len(cs)} crops (cached by training)")
+        log(f"{len(cs)} crops on {kind} boxes (cached by training)")
     else:
-        cs = build_training_crops(data_dir, size, seed=seed)
-        log(f"{len(cs)} crops (cut now)")
+        cs = build_training_crops(data_dir, size, seed=seed, jitter=jitter)
+        log(f"{len(cs)} crops on {kind} boxes (cut now)")
     unknown = sorted(set(np.unique(cs.obj_id).tolist()) - {int(o["id"]) for o in manifest["objects"]})
     if unknown:
         raise UserError(f"{data_dir}: objects {unknown} are not in the bundle {model_dir}")

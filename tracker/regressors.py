@@ -261,7 +261,7 @@ class PoseHead:
         else:
             R = self.rotation.predict(rotation_inputs(mu, idx, n))
             offset = self.centre.predict(centre_inputs(mu, idx, n, boxes, K))
-            tz = np.exp(self.distance.predict(distance_inputs(mu, idx, n, boxes, K))) / size
+            tz = np.exp(np.ravel(self.distance.predict(distance_inputs(mu, idx, n, boxes, K)))) / size  # KNN: (N,), MLP: (N, 1)
         centre = centre_from_box_offset(boxes, offset)
         K = np.asarray(K, dtype=np.float64)
         if self.rotation_frame == "ray":
