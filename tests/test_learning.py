@@ -206,7 +206,8 @@ def _distance_case(X, y):
     return size, centre, t, np.repeat(K[None], len(y), 0)
 
 
-def test_choose_distance_keeps_the_head_with_the_lower_validation_error():
+def test_choose_distance_keeps_the_head_with_the_lower_validation_error(monkeypatch):
+    import tracker.train
     from tracker.regressors import DistanceKNN, NumpyMLP
     from tracker.train import choose_distance
     rng = np.random.default_rng(0)
@@ -223,6 +224,12 @@ def test_choose_distance_keeps_the_head_with_the_lower_validation_error():
     m, info = choose_distance(X[tr], y2[tr], X[tr[:300]], y2[tr[:300]], *_distance_case(X[tr[:300]], y2[tr[:300]]),
                               reg_minutes=0.05, log=lambda *a: None)
     assert isinstance(m, DistanceKNN) and info["head"] == "knn" and info["val_te_median_mm"] < 1e-3
+    assert info["knn"]["rows"] == 1200 and len(m.X_) == 1200
+    # a large training set: the KNN keeps a random subset, so the bundle stays small
+    monkeypatch.setattr(tracker.train, "KNN_MAX_ROWS", 500)
+    m, info = choose_distance(X[tr], y2[tr], X[tr[:300]], y2[tr[:300]], *_distance_case(X[tr[:300]], y2[tr[:300]]),
+                              reg_minutes=0.05, log=lambda *a: None)
+    assert info["knn"]["rows"] == 500 and info["knn"]["val_te_median_mm"] > 1e-3
 
 
 class _Const:

@@ -371,7 +371,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--size", type=int, default=64, help="crop side in pixels (thesis: 128)")
     s.add_argument("--latent", type=int, default=128)
     s.add_argument("--minutes", type=float, default=45.0, help="autoencoder time budget")
-    s.add_argument("--reg-minutes", type=float, default=4.0, help="time budget per MLP regressor")
+    s.add_argument("--reg-minutes", type=float, default=5.0, help="time budget per MLP regressor")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--max-images", type=int, help="use only the first N scene images")
     s.add_argument("--models-info", help="models_info.json (default: computed from the meshes)")
@@ -381,7 +381,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--model", required=True, help="bundle folder, e.g. models/lmo")
     s.add_argument("--data", required=True, help="the 'synth' split to fit on (the bundle's own, normally)")
     s.add_argument("--out", help="write the refitted bundle here (default: in place)")
-    s.add_argument("--reg-minutes", type=float, default=4.0, help="time budget per MLP regressor")
+    s.add_argument("--reg-minutes", type=float, default=5.0, help="time budget per MLP regressor")
     s.add_argument("--seed", type=int, default=0)
     s.set_defaults(func=cmd_refit_heads)
 

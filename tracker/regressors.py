@@ -1,17 +1,19 @@
 """Pose regressors on the latent code, with the scikit-learn API and numpy-only ``predict``
-(so a bundle runs without torch). Training of :class:`Rot6DMLP` imports torch lazily.
+(so a bundle runs without torch). Training of :class:`NumpyMLP` imports torch lazily.
 
 Features are camera-independent (see :func:`tracker.geometry.box_features`):
 - rotation: ``[mu, onehot]`` -> 6D (Zhou et al.) -> R;
 - centre: ``[mu, onehot, u, v, w', h']`` -> offset of the projected centre from the box
   centre in units of the box's longer side;
-- distance: ``[mu, onehot, log w', log h']`` -> ``Tz * sqrt(w' h')`` (the object's apparent
-  size times its distance, about constant per view), k-nearest-neighbours, distance
-  weighted, k and the weight of the box features chosen on validation.
+- distance: ``[mu, onehot, log w', log h']`` -> ``log(Tz * sqrt(w' h'))`` (the object's apparent
+  size times its distance, about constant per view): k-nearest-neighbours, distance
+  weighted, k and the weight of the box features chosen on validation, or an MLP where it
+  does better on validation (``tracker.train.choose_distance``).
 """
 from __future__ import annotations
 
 import numpy as np
+from scipy.special import expit
 from sklearn.base import BaseEstimator, RegressorMixin
 from sklearn.preprocessing import StandardScaler
 
@@ -20,7 +22,7 @@ from .geometry import box_features, centre_from_box_offset, matrix_from_rot6d, r
 
 
 def _silu(x):
-    return x / (1.0 + np.exp(-x))
+    return x * expit(x)  # x / (1 + exp(-x)) overflows (a warning) for very negative x
 
 
 class NumpyMLP(BaseEstimator, RegressorMixin):

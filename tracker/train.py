@@ -21,6 +21,12 @@ from .regressors import (Codebook, DistanceKNN, NumpyMLP, PoseHead, apparent_siz
 
 KNN_K = (1, 2, 3, 5, 8, 12, 20)
 KNN_BOX_WEIGHT = (1.0, 3.0, 10.0)
+KNN_MAX_ROWS = 30_000  # the distance KNN keeps its training codes: 30 k x 138 float32 = 17 MB of the bundle
+# Rotation MLP widths. On models/lmo's frozen encoder (heads on jittered + exact boxes, LM-O dev
+# frames, GT boxes): (512, 512, 512) for 5 min reached ADD(I) 0.127 / MSPD 0.476 / RE 37.2 deg,
+# (256, 256) for 3 min 0.117 / 0.445 / 39.3 deg; one layer of 128, more weight decay, input
+# noise or L2-normalised codes were all worse (docs/models.md).
+ROTATION_HIDDEN = (512, 512, 512)
 
 
 OVERLAY_FACES = 1500
@@ -67,8 +73,13 @@ def choose_distance(Xtr, ytr, Xva, yva, size_va, centre_va_t, t_va, K_va, reg_mi
                     log=print):
     """The distance head: the KNN of :func:`choose_knn` or an MLP, whichever has the lower
     whole-translation error on validation (the thesis prefers an MLP or RF once many objects
-    share one model). Returns ``(model, {"head", "val_te_median_mm", "knn"})``."""
-    knn, knn_info = choose_knn(Xtr, ytr, Xva, size_va, centre_va_t, t_va, K_va, log=log)
+    share one model). The KNN keeps at most ``KNN_MAX_ROWS`` training codes, drawn at random,
+    so that the bundle stays small. Returns ``(model, {"head", "val_te_median_mm", "knn"})``."""
+    keep = np.arange(len(Xtr))
+    if len(keep) > KNN_MAX_ROWS:
+        keep = np.sort(np.random.default_rng(seed).choice(len(Xtr), KNN_MAX_ROWS, replace=False))
+    knn, knn_info = choose_knn(Xtr[keep], ytr[keep], Xva, size_va, centre_va_t, t_va, K_va, log=log)
+    knn_info["rows"] = len(keep)
     log("distance MLP ...")
     mlp = NumpyMLP(hidden=(256, 256), loss="l1", epochs=300, weight_decay=1e-2, minutes=reg_minutes / 2,
                    seed=seed).fit(Xtr, ytr[:, None], None, Xva, yva[:, None], log=log)
@@ -95,7 +106,7 @@ def with_exact_boxes(cs, mu, cs_exact, mu_exact, tr, va):
             np.concatenate([tr, tr + n]), np.concatenate([va, va + n]))
 
 
-def fit_heads(mu, cs, obj_ids, models_info, tr, va, rng, reg_minutes: float = 4.0, codebook_per_object: int = 1500,
+def fit_heads(mu, cs, obj_ids, models_info, tr, va, rng, reg_minutes: float = 5.0, codebook_per_object: int = 1500,
               seed: int = 0, n_jittered: int | None = None, log=print):
     """The regressors and the AAE codebook on frozen latent codes ``mu`` of the crops ``cs``.
 
@@ -115,7 +126,7 @@ def fit_heads(mu, cs, obj_ids, models_info, tr, va, rng, reg_minutes: float = 4.
     size_feat = apparent_size(cs.box, K)
 
     log("rotation MLP (6D, L1 on R, symmetry-aware, relative to the viewing ray) ...")
-    rot = NumpyMLP(hidden=(256, 256), loss="l1_rotation", epochs=300, weight_decay=1e-2, minutes=reg_minutes,
+    rot = NumpyMLP(hidden=ROTATION_HIDDEN, loss="l1_rotation", epochs=300, weight_decay=1e-2, minutes=reg_minutes,
                    seed=seed).fit(rotation_inputs(mu[tr], idx[tr], n_obj), R_ray[tr], symR[tr],
                                   rotation_inputs(mu[va], idx[va], n_obj), R_ray[va], symR[va], log=log)
     log(f"rotation MLP: best validation epoch {rot.best_epoch_}")
@@ -176,7 +187,7 @@ def export_encoder(model, size: int, n_cond: int, path: Path, x_check: np.ndarra
 
 def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent: int = 128,
                  minutes: float = 45.0, seed: int = 0, max_images: int | None = None,
-                 models_info_path=None, codebook_per_object: int = 1500, reg_minutes: float = 4.0,
+                 models_info_path=None, codebook_per_object: int = 1500, reg_minutes: float = 5.0,
                  log=print, command: str | None = None, encoder: str = "plain") -> dict:
     torch = _torch()
     from .crops import CropSet, build_training_crops, crops_cache_path, train_val_split
@@ -308,7 +319,7 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
     return manifest
 
 
-def refit_heads(model_dir, data_dir, out_dir=None, seed: int = 0, reg_minutes: float = 4.0,
+def refit_heads(model_dir, data_dir, out_dir=None, seed: int = 0, reg_minutes: float = 5.0,
                 codebook_per_object: int = 1500, log=print, command: str | None = None) -> dict:
     """Refit a bundle's regressors and AAE codebook on its frozen encoder (ONNX), without
     retraining the autoencoder; writes the bundle to ``out_dir`` (default: in place)."""
