@@ -188,3 +188,25 @@ def test_the_table_changes_the_pixels_not_the_annotations(data_dir, tmp_path):
         assert filecmp.cmp(a / name, b / name, shallow=False), name
     ia, ib = (cv2.imread(str(d / "rgb" / "000000.jpg")).astype(int) for d in (a, b))
     assert np.abs(ia - ib).mean() > 10  # the table's surface replaced the photo
+
+
+def test_join_splits_links_the_scenes_in_order(small_split, tmp_path, data_dir):
+    from tracker.crops import build_training_crops
+    from tracker.synth.join import join_splits
+    other = tmp_path / "other"
+    generate(_cfg(data_dir, seed=6, p_table=0.0), other, 2, workers=1, progress=False)
+    meta = join_splits(tmp_path / "joined", [small_split, other])
+    assert meta["images_written"] == 10 and len(meta["joined"]) == 2
+    a, b, j = (build_training_crops(d, 32, jitter=False, progress=False) for d in (small_split, other, tmp_path / "joined"))
+    assert np.array_equal(j.obj_id, np.concatenate([a.obj_id, b.obj_id]))
+    assert np.array_equal(j.x, np.concatenate([a.x, b.x]))
+    with pytest.raises(UserError, match="not empty"):
+        join_splits(tmp_path / "joined", [small_split, other])
+    with pytest.raises(UserError, match="no synth_config"):
+        join_splits(tmp_path / "j2", [small_split, tmp_path])
+    third = tmp_path / "third"
+    generate(SynthConfig(models_dir=str(data_dir / "lmo" / "models"), backgrounds_dir=str(data_dir / "backgrounds"),
+                         obj_ids=[1, 5]), third, 1, workers=1, progress=False)
+    with pytest.raises(UserError, match="differ in obj_ids"):
+        join_splits(tmp_path / "j3", [small_split, third])
+    assert not (tmp_path / "j2").exists() and not (tmp_path / "j3").exists()

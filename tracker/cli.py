@@ -104,6 +104,14 @@ def cmd_synth(args) -> int:
     return 130 if rep.interrupted else 0
 
 
+def cmd_join_splits(args) -> int:
+    from .synth.join import join_splits
+    m = join_splits(args.out, args.splits, command="app.py " + " ".join(sys.argv[1:]))
+    print(f"wrote {args.out}: {len(list(Path(args.out).glob('[0-9]*')))} scenes, {m['images_written']} images "
+          f"from {len(args.splits)} splits (linked, not copied)")
+    return 0
+
+
 def cmd_score(args) -> int:
     from .scoring import score_results, write_metrics_json
     m = score_results(args.results, args.data, args.models, models_info=args.models_info)
@@ -353,6 +361,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "slightly smoother colours (default: the full meshes)")
     s.add_argument("--preview", help="PNG montage of samples, boxes, visible fractions and crops")
     s.set_defaults(func=cmd_synth)
+
+    s = sub.add_parser("join-splits", help="one training split made of several 'synth' splits (linked)")
+    s.add_argument("splits", nargs="+", type=Path, help="'synth' splits, in order")
+    s.add_argument("--out", type=Path, required=True, help="new folder")
+    s.set_defaults(func=cmd_join_splits)
 
     s = sub.add_parser("score", help="score a BOP results CSV against a BOP scene")
     s.add_argument("--results", required=True, help="BOP results CSV")
