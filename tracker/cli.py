@@ -107,7 +107,7 @@ def cmd_synth(args) -> int:
 def cmd_join_splits(args) -> int:
     from .synth.join import join_splits
     m = join_splits(args.out, args.splits, command="app.py " + " ".join(sys.argv[1:]))
-    print(f"wrote {args.out}: {len(list(Path(args.out).glob('[0-9]*')))} scenes, {m['images_written']} images "
+    print(f"wrote {args.out}: {m['scenes']} scenes, {m['images_written']} images "
           f"from {len(args.splits)} splits (linked, not copied)")
     return 0
 

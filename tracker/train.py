@@ -14,7 +14,8 @@ import numpy as np
 
 from .bop import load_models_info, symmetry_transforms
 from .errors import UserError
-from .geometry import box_offset_of_centre, centre_from_box_offset, focal_mean, rotation_error_deg
+from .geometry import (box_offset_of_centre, centre_from_box_offset, focal_mean, rotation_error_deg,
+                       translation_from_centre)
 from .overlay import LMO_NAMES
 from .regressors import (Codebook, DistanceKNN, NumpyMLP, PoseHead, apparent_size, centre_inputs,
                          distance_inputs, rotation_inputs)
@@ -50,7 +51,6 @@ def _sym_rotations(obj_idx, obj_ids, models_info) -> np.ndarray:
 
 def _median_te(tz, centre, t, K) -> float:
     """Median whole-translation error (mm) of distances ``tz`` through the centres ``centre``."""
-    from .geometry import translation_from_centre
     est = np.stack([translation_from_centre(c, z, KK) for c, z, KK in zip(centre, tz, K)])
     return float(np.median(np.linalg.norm(est - t, axis=1)))
 

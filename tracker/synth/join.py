@@ -37,7 +37,7 @@ def join_splits(out_dir, splits, command: str | None = None) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     for i, d in enumerate(scenes):
         (out / f"{i:06d}").symlink_to(d, target_is_directory=True)
-    meta = {"config": metas[0]["config"],
+    meta = {"config": metas[0]["config"], "scenes": len(scenes),
             "joined": [{"split": str(Path(s).resolve()), "command": m.get("command"), "config": m["config"],
                         "images_written": m.get("images_written", m.get("images"))} for s, m in zip(splits, metas)],
             "images_written": sum(int(m.get("images_written", m.get("images", 0))) for m in metas),
