@@ -34,3 +34,21 @@ def test_gt_overlay_job(lmo_dev, data_dir, tmp_path):
     assert s.frames == 2 and s.instances == sum(len(lmo_dev.gt[i]) for i in lmo_dev.im_ids[:2])
     assert s.box_iou_min > 0.85
     assert (tmp_path / "overlay_montage.png").is_file() and len(list((tmp_path / "overlay").glob("*.png"))) == 2
+
+
+def test_glossy_material_adds_highlights_and_the_default_comes_back():
+    import trimesh
+    ball = trimesh.creation.icosphere(subdivisions=4, radius=50.0)
+    ball.visual.vertex_colors = np.tile([120, 120, 120, 255], (len(ball.vertices), 1))
+    K = np.array([[500.0, 0, 64], [0, 500.0, 64], [0, 0, 1]])
+    pose = [(1, np.eye(3), np.array([0.0, 0.0, 600.0]))]
+    with Renderer(128, 128, {1: ball}) as r:
+        matte, depth = r.render(K, pose)
+        r.set_material(1, metallic=0.4, roughness=0.15)
+        glossy, _ = r.render(K, pose)
+        r.set_material(1)
+        again, _ = r.render(K, pose)
+    on = depth > 0
+    # the head light's specular peak: a glossy ball is far brighter at its centre than a matte one
+    assert glossy[on].max() > matte[on].max() + 30
+    assert np.array_equal(again, matte)

@@ -210,3 +210,18 @@ def test_join_splits_links_the_scenes_in_order(small_split, tmp_path, data_dir):
     with pytest.raises(UserError, match="differ in obj_ids"):
         join_splits(tmp_path / "j3", [small_split, third])
     assert not (tmp_path / "j2").exists() and not (tmp_path / "j3").exists()
+
+
+def test_gloss_changes_the_object_pixels_not_the_annotations(data_dir, tmp_path):
+    for p in (0.0, 1.0):
+        generate(_cfg(data_dir, seed=5, p_table=0.0, p_gloss=p), tmp_path / str(p), 2, workers=1, progress=False)
+    a, b = tmp_path / "0.0" / "000000", tmp_path / "1.0" / "000000"
+    for name in ("scene_gt.json", "scene_gt_info.json", "clean_crops.json"):
+        assert filecmp.cmp(a / name, b / name, shallow=False), name
+    for f in sorted((a / "clean").iterdir()):  # the reconstruction targets stay matte
+        assert filecmp.cmp(f, b / "clean" / f.name, shallow=False), f.name
+    ia, ib = (cv2.imread(str(d / "rgb" / "000000.jpg")).astype(int) for d in (a, b))
+    masks = sorted((a / "mask_visib").glob("000000_*.png"))
+    on = np.any([cv2.imread(str(m), cv2.IMREAD_GRAYSCALE) > 0 for m in masks], axis=0)
+    diff = np.abs(ia - ib).sum(axis=2)
+    assert diff[on].mean() > 5 * max(diff[~on].mean(), 0.5)  # the objects changed, the background did not

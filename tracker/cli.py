@@ -93,7 +93,7 @@ def cmd_synth(args) -> int:
     obj_ids = [int(x) for x in args.obj_ids.split(",")] if args.obj_ids else None
     cfg = SynthConfig(models_dir=str(args.models), backgrounds_dir=str(args.backgrounds or shared_data() / "backgrounds"),
                       seed=args.seed, prior=args.prior, obj_ids=obj_ids, mesh_faces=args.mesh_faces, depth=args.depth,
-                      p_table=args.p_table)
+                      p_table=args.p_table, p_gloss=args.gloss)
     rep = generate(cfg, args.out, args.images, workers=args.workers, command="app.py " + " ".join(sys.argv[1:]))
     state = "INTERRUPTED after" if rep.interrupted else "wrote"
     print(f"{state} {rep.images} images, {rep.instances} instances ({rep.crops_visib_ge_0_1} with visib >= 0.1) "
@@ -353,6 +353,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--p-table", type=float, default=0.7, metavar="P",
                    help="table prior: share of scenes with the table's surface and shadows drawn "
                         "(0: photos behind floating objects, as data made before it existed)")
+    s.add_argument("--gloss", type=float, default=0.0, metavar="P",
+                   help="share of objects per image rendered glossy and partly metallic, with highlights "
+                        "(0: matte only, as data made before it existed)")
     s.add_argument("--obj-ids", help="comma-separated subset of the models' ids")
     s.add_argument("--workers", type=int, default=2, help="render processes")
     s.add_argument("--depth", action="store_true", help="also write depth images (depth/, for VSD)")

@@ -58,6 +58,9 @@ def _light_pose(direction_cv: np.ndarray) -> np.ndarray:
     return T
 
 
+METALLIC, ROUGHNESS = 0.0, 0.8  # the objects' default material: matte, not metallic
+
+
 def pose_matrix(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     T = np.eye(4)
     T[:3, :3] = np.asarray(R, dtype=np.float64).reshape(3, 3)
@@ -79,7 +82,7 @@ def _to_pyrender(pr, mesh):
     srgb = np.asarray(visual.vertex_colors, dtype=np.float32)[:, :3] / 255.0
     linear = np.where(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4)
     colours = np.concatenate([linear, np.ones((len(linear), 1), np.float32)], axis=1)
-    material = pr.MetallicRoughnessMaterial(baseColorFactor=np.ones(4), metallicFactor=0.0, roughnessFactor=0.8)
+    material = pr.MetallicRoughnessMaterial(baseColorFactor=np.ones(4), metallicFactor=METALLIC, roughnessFactor=ROUGHNESS)
     prim = pr.Primitive(positions=np.asarray(mesh.vertices, dtype=np.float32),
                         normals=np.asarray(mesh.vertex_normals, dtype=np.float32),
                         indices=np.asarray(mesh.faces, dtype=np.uint32), color_0=colours, material=material)
@@ -139,6 +142,16 @@ class Renderer:
 
     def set_ambient(self, ambient) -> None:
         self.scene.ambient_light = np.broadcast_to(np.asarray(ambient, dtype=np.float64), (3,)).copy()
+
+    def set_material(self, obj_id: int, metallic: float = METALLIC, roughness: float = ROUGHNESS) -> None:
+        """Make an object glossier or more metallic for the following renders (every instance of it);
+        the defaults give back the matte material. pyrender reads the factors at each draw."""
+        if int(obj_id) not in self._meshes:
+            raise UserError(f"no mesh for object {obj_id} in the renderer (has {self.obj_ids})")
+        for prim in self._meshes[int(obj_id)].primitives:
+            if prim.material is not None:
+                prim.material.metallicFactor = float(metallic)
+                prim.material.roughnessFactor = float(roughness)
 
     def set_camera(self, K: np.ndarray) -> None:
         K = np.asarray(K, dtype=np.float64)

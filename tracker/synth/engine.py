@@ -34,7 +34,7 @@ from ..errors import UserError
 from ..visibility import scene_visibility
 from . import priors
 from .randomise import (Backgrounds, camera_effects, cast_shadows, composite, distractor_meshes, jitter_colours,
-                        list_backgrounds, sample_lights, table_surface)
+                        list_backgrounds, sample_lights, sample_materials, table_surface)
 
 CHUNK = 1000
 DEPTH_SCALE = 0.1  # mm per unit of the written depth PNGs (up to 6.5 m)
@@ -56,6 +56,10 @@ class SynthConfig:
     # 'table' prior: how often the table's surface is drawn (a photo laid on the plane the
     # objects stand on, with their soft shadows) instead of a photo behind floating objects
     p_table: float = 0.7
+    # share of (image, object) pairs rendered with a glossy, partly metallic material instead
+    # of the matte default (real plastic and ceramic show highlights that vertex colours lack);
+    # drawn from their own random stream, so 0 reproduces the images of before byte for byte
+    p_gloss: float = 0.0
     crop_size: int = 128  # clean targets, rendered in the visibility window (visibility.WINDOW_PAD)
     jpeg_quality: tuple = (70, 95)
     obj_ids: list | None = None
@@ -161,6 +165,8 @@ def render_one(index: int, out_root: str) -> dict:
     scene, crop_r = _W["scene"], _W["crop"]
 
     lights, ambient = sample_lights(rng)
+    if cfg.p_gloss > 0:
+        sample_materials(scene, _W["obj_ids"], cfg.p_gloss, np.random.default_rng([cfg.seed, index, 1]))
     scene.set_lights(lights)
     scene.set_ambient(ambient)
     rgb, depth = scene.render(K, inst)
@@ -239,6 +245,8 @@ def generate(cfg: SynthConfig, out_dir, n_images: int, workers: int = 2, batch: 
         raise UserError(f"unknown prior '{cfg.prior}' (choose from {', '.join(priors.PRIORS)})")
     if not 0.0 <= cfg.p_table <= 1.0:
         raise UserError(f"--p-table must be between 0 and 1, got {cfg.p_table}")
+    if not 0.0 <= cfg.p_gloss <= 1.0:
+        raise UserError(f"--gloss must be between 0 and 1, got {cfg.p_gloss}")
     list_backgrounds(cfg.backgrounds_dir)  # fail early, in the parent
     from ..meshes import load_models
     models = load_models(cfg.models_dir, cfg.obj_ids)  # fail early (and warn once) on bad meshes

@@ -197,6 +197,19 @@ def sample_lights(rng: np.random.Generator):
     return lights, ambient
 
 
+def sample_materials(renderer, obj_ids, p_gloss: float, rng: np.random.Generator,
+                     roughness=(0.15, 0.55), metallic=(0.0, 0.2)) -> None:
+    """Each object, with probability ``p_gloss``, glossy (low roughness) and partly metallic
+    for the next renders; the others get the matte default back."""
+    for oid in obj_ids:
+        glossy = rng.random() < p_gloss
+        r, m = rng.uniform(*roughness), rng.uniform(*metallic)  # drawn either way: one draw count per object
+        if glossy:
+            renderer.set_material(oid, metallic=m, roughness=r)
+        else:
+            renderer.set_material(oid)
+
+
 # --------------------------------------------------------------------------- camera effects
 
 
