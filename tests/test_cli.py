@@ -83,3 +83,68 @@ def test_demo_runs_the_bundled_model_through_the_tracker(tmp_path):
     for f in ("poses.csv", "timings.csv", "summary.json", "recording.rrd"):
         assert (tmp_path / "run" / f).is_file(), f
     assert "accuracy against the ground truth" in p.stdout and "rerun recording" in p.stdout
+
+
+def test_numeric_flags_are_checked_before_any_work(tmp_path, data_dir):
+    dev = data_dir / "lmo" / "dev"
+    for args in (["eval", "--model", "models/lmo", "--data", dev, "--json", tmp_path / "m.json", "--max-frames", 0],
+                 ["track", "--source", dev, "--detect-every", 0],
+                 ["train-detector", "--data", tmp_path, "--model", "models/lmo", "--minutes", -5],
+                 ["pack-scene", "--data", dev, "--out", tmp_path / "r", "--quality", 200],
+                 ["calibrate", "--images", "x", "--board", "9x6", "--square", "nan", "--out", tmp_path / "c.yaml"],
+                 ["synth", "--models", tmp_path, "--out", tmp_path / "s", "--images", 2, "--obj-ids", "1,abc"]):
+        p = run(*args)
+        assert p.returncode == 2 and "Traceback" not in p.stderr, (args, p.stderr)
+        assert "error: argument" in p.stderr, p.stderr
+
+
+def test_an_unwritable_output_is_a_one_line_error(tmp_path, data_dir):
+    (tmp_path / "taken").write_text("a file, not a folder")
+    p = run("synth", "--models", data_dir / "lmo" / "models", "--out", tmp_path / "taken", "--images", 1,
+            "--obj-ids", 1, "--workers", 1)
+    assert_one_line_error(p)
+    assert "taken" in p.stderr
+
+
+def test_empty_ground_truth_and_missing_ablate_tables_are_clear_errors(tmp_path, data_dir):
+    import shutil
+
+    import pytest
+
+    from tracker.errors import UserError
+    from tracker.evaluate import evaluate
+    from tracker.report import build_report
+    scene = tmp_path / "scene"
+    (scene / "rgb").mkdir(parents=True)
+    shutil.copy(data_dir / "lmo" / "dev" / "rgb" / "000003.png", scene / "rgb")
+    shutil.copy(data_dir / "lmo" / "dev" / "scene_camera.json", scene)
+    (scene / "scene_gt.json").write_text("{}")
+    with pytest.raises(UserError, match="lists no images"):
+        evaluate(REPO / "models" / "lmo", scene, tmp_path / "m.json", progress=False)
+    with pytest.raises(UserError, match="file not found"):
+        build_report(REPO / "models" / "lmo", scene, tmp_path / "report", ablate_json=tmp_path / "nope.json")
+    (tmp_path / "bad.json").write_text('{"train": 1}')
+    with pytest.raises(UserError, match="missing validation"):
+        build_report(REPO / "models" / "lmo", scene, tmp_path / "report", ablate_json=tmp_path / "bad.json")
+
+
+def test_track_on_a_scene_with_objects_the_bundle_does_not_know(tmp_path, data_dir):
+    import json
+    import shutil
+
+    import pytest
+
+    from tracker.errors import UserError
+    from tracker.loop import TrackConfig, run_track
+    dev = data_dir / "lmo" / "dev"
+    scene = tmp_path / "scene"
+    (scene / "rgb").mkdir(parents=True)
+    shutil.copy(dev / "rgb" / "000003.png", scene / "rgb")
+    cam = json.loads((dev / "scene_camera.json").read_text())["3"]
+    gt = json.loads((dev / "scene_gt.json").read_text())["3"]
+    gt[0]["obj_id"] = 99
+    (scene / "scene_camera.json").write_text(json.dumps({"3": cam}))
+    (scene / "scene_gt.json").write_text(json.dumps({"3": gt}))
+    with pytest.raises(UserError, match=r"object\(s\) \[99\].*--boxes detector"):
+        run_track(TrackConfig(str(scene), str(REPO / "models" / "lmo"), tmp_path / "run", overlay=False),
+                  log=lambda m: None)

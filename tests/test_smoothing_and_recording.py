@@ -50,6 +50,8 @@ def test_scene_as_video_reads_like_the_scene(data_dir, tmp_path):
     (src / "scene_gt.json").write_text(json.dumps({i: gts[i] for i in ids}))
     r = write_scene_video(src, tmp_path / "rec")
     assert r["frames"] == 4 and r["psnr_min"] > 33
+    low = write_scene_video(src, tmp_path / "low", quality=30)  # the quality reaches the encoder
+    assert low["bytes"] < 0.7 * r["bytes"] and low["psnr_min"] < r["psnr_min"]
     a, b = load_scene(src), load_scene(tmp_path / "rec")
     assert b.im_ids == a.im_ids and b.video is not None
     for i in reversed(b.im_ids):  # random access (seeks) returns the right frame

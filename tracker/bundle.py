@@ -45,7 +45,9 @@ def read_verified_manifest(bundle_dir) -> dict:
     try:
         manifest = json.loads(mpath.read_text())
         files = manifest["files"]
-    except (json.JSONDecodeError, KeyError, TypeError):
+        if not isinstance(files, dict) or not all(isinstance(m, dict) for m in files.values()):
+            raise TypeError
+    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError):
         raise UserError(f"{mpath}: unreadable manifest") from None
     for rel, meta in files.items():
         p = d / rel
@@ -72,9 +74,20 @@ class Bundle:
             raise UserError(f"{self.root}: artefact '{rel}' is not hashed in the manifest; refusing it")
         return self.root / rel
 
-    def load_joblib(self, key: str):
+    def load_joblib(self, key: str, expected: type | None = None):
+        """Unpickle an artefact (its hash was verified when the bundle was opened); with
+        ``expected``, refuse anything that is not an instance of it."""
         import joblib
-        return joblib.load(self.path(key))  # hashes were verified when the bundle was opened
+        path = self.path(key)
+        try:
+            obj = joblib.load(path)
+        except Exception as e:
+            raise UserError(f"{path}: unreadable {key} ({e.__class__.__name__}); the bundle was "
+                            f"built broken: rebuild it") from None
+        if expected is not None and not isinstance(obj, expected):
+            raise UserError(f"{path}: holds a {type(obj).__name__}, not a {expected.__name__}; "
+                            f"the bundle was built broken: rebuild it")
+        return obj
 
     @property
     def objects(self) -> list[dict]:
@@ -91,6 +104,27 @@ def update_manifest(bundle_dir, change) -> dict:
     return read_verified_manifest(b.root)
 
 
+def check_manifest(manifest: dict, where) -> None:
+    """The keys that every reader of a bundle relies on, with their types."""
+    def bad(what):
+        raise UserError(f"{where}: malformed manifest ({what}); rebuild the bundle")
+    objs = manifest.get("objects")
+    if not isinstance(objs, list) or not objs:
+        bad("no 'objects' list")
+    for o in objs:
+        if not isinstance(o, dict):
+            bad("an object entry is not a mapping")
+        for key, kind in (("id", int), ("mesh", str), ("diameter", (int, float))):
+            if not isinstance(o.get(key), kind) or isinstance(o.get(key), bool):
+                bad(f"object {o.get('id', '?')}: '{key}' missing or not a {getattr(kind, '__name__', 'number')}")
+    for key in ("input_size", "latent_size"):
+        v = manifest.get(key)
+        if not isinstance(v, int) or isinstance(v, bool) or v <= 0:
+            bad(f"'{key}' missing or not a positive integer")
+
+
 def open_bundle(bundle_dir) -> Bundle:
     d = Path(bundle_dir)
-    return Bundle(d, read_verified_manifest(d))
+    manifest = read_verified_manifest(d)
+    check_manifest(manifest, d)
+    return Bundle(d, manifest)

@@ -62,6 +62,8 @@ def cmd_calibrate(args) -> int:
     if not args.images and args.source is None:
         raise UserError("calibrate needs --images GLOB or --source SRC")
     board = parse_board(args.board)
+    if Path(args.out).is_dir():
+        raise UserError(f"--out {args.out} is a folder; give the camera file to write, e.g. {Path(args.out) / 'camera.yaml'}")
     res = calibrate(board, args.square, images=args.images, source=args.source, every=args.every,
                     log=lambda m: print(m, file=sys.stderr))
     write_camera(args.out, res.camera, {"avg_reprojection_error": res.rms_px, "nframes": len(res.used),
@@ -90,7 +92,7 @@ def cmd_synth(args) -> int:
     from .paths import shared_data
     from .synth.engine import SynthConfig, generate
     from .synth.preview import preview
-    obj_ids = [int(x) for x in args.obj_ids.split(",")] if args.obj_ids else None
+    obj_ids = args.obj_ids
     cfg = SynthConfig(models_dir=str(args.models), backgrounds_dir=str(args.backgrounds or shared_data() / "backgrounds"),
                       seed=args.seed, prior=args.prior, obj_ids=obj_ids, mesh_faces=args.mesh_faces, depth=args.depth,
                       p_table=args.p_table, p_gloss=args.gloss)
@@ -219,7 +221,7 @@ def cmd_imu(args) -> int:
     from .imu import compare, read_imu_log, read_run, write_report
     run = read_run(args.run, obj_id=args.obj_id)
     log = read_imu_log(args.imu, max_gap_s=args.max_gap)
-    rep = compare(run, log, mode=args.mode)
+    rep = compare(run, log, mode=args.mode, time_offset_s=args.time_offset, max_offset_s=args.max_offset)
     files = write_report(args.out, rep)
     print(f"{rep['n_pairs']} frame/IMU pairs, clock offset {rep['time_offset_s'] * 1000:.1f} ms: RE mean "
           f"{rep['re_mean_deg']:.2f} deg, median {rep['re_median_deg']:.2f}, p90 {rep['re_p90_deg']:.2f}, "
@@ -299,6 +301,44 @@ def cmd_bench(args) -> int:
     return 0
 
 
+# --------------------------------------------------------------------------- argument types
+
+
+def _number(kind, low: float, strict: bool, what: str):
+    """An argparse type: a finite ``kind`` above ``low`` (or at least it, when not ``strict``)."""
+    def parse(text: str):
+        try:
+            v = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"'{text}' is not {what}") from None
+        if v != v or v in (float("inf"), float("-inf")) or (v <= low if strict else v < low):
+            raise argparse.ArgumentTypeError(f"'{text}' is not {what}")
+        return v
+    return parse
+
+
+positive_int = _number(int, 0, True, "a positive integer")
+nonnegative_int = _number(int, 0, False, "an integer >= 0")
+positive_float = _number(float, 0.0, True, "a positive number")
+finite_float = _number(float, float("-inf"), True, "a number")
+
+
+def jpeg_quality(text: str) -> int:
+    q = _number(int, 1, False, "a JPEG quality from 1 to 100")(text)
+    if q > 100:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a JPEG quality from 1 to 100")
+    return q
+
+
+def id_list(text: str) -> list[int]:
+    """'1,5,9' -> [1, 5, 9]."""
+    try:
+        ids = [int(x) for x in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a comma-separated list of object ids, e.g. 1,5,9") from None
+    return ids
+
+
 # --------------------------------------------------------------------------- parser
 
 
@@ -309,7 +349,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("demo", help="replay the bundled recording through the pipeline (default)")
     s.add_argument("--out", help="run folder (default runs/demo-TIMESTAMP)")
-    s.add_argument("--max-frames", type=int, default=None)
+    s.add_argument("--max-frames", type=positive_int, default=None)
     s.set_defaults(func=cmd_demo)
 
     s = sub.add_parser("track", help="the frame loop on a camera, video, image folder or BOP scene")
@@ -319,11 +359,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--calib", help="camera file (needed for cameras, videos and image folders)")
     s.add_argument("--out", help="run folder (default runs/track-TIMESTAMP)")
     s.add_argument("--rerun", choices=["spawn", "serve", "save", "off"], default="save")
-    s.add_argument("--max-frames", type=int)
+    s.add_argument("--max-frames", type=positive_int)
     s.add_argument("--realtime", action="store_true", help="play recordings at their recorded rate")
     s.add_argument("--no-overlay", action="store_true", help="skip rendering the overlay")
     s.add_argument("--loop", action="store_true", help="replay a recording again and again up to --max-frames (soak)")
-    s.add_argument("--detect-every", type=int, default=1, metavar="N",
+    s.add_argument("--detect-every", type=positive_int, default=1, metavar="N",
                    help="run the detector every N frames (and whenever an object is lost); in between, "
                         "boxes come from the previous poses")
     s.add_argument("--smooth", type=float, default=None, metavar="ALPHA",
@@ -337,15 +377,15 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--images", help="glob of board photos, e.g. 'calib/*.jpg'")
     g.add_argument("--source", help="video file or camera index")
     s.add_argument("--board", required=True, help="inner corners COLSxROWS, e.g. 9x6")
-    s.add_argument("--square", type=float, required=True, help="square side in mm")
+    s.add_argument("--square", type=positive_float, required=True, help="square side in mm")
     s.add_argument("--out", required=True, help="camera file to write (OpenCV YAML)")
-    s.add_argument("--every", type=int, default=15, help="with --source: use every Nth frame")
+    s.add_argument("--every", type=positive_int, default=15, help="with --source: use every Nth frame")
     s.set_defaults(func=cmd_calibrate)
 
     s = sub.add_parser("synth", help="synthetic, domain-randomised BOP training scenes")
     s.add_argument("--models", required=True, help="folder of obj_NNNNNN.ply (mm)")
     s.add_argument("--out", required=True, help="output split folder")
-    s.add_argument("--images", type=int, required=True, help="number of scene images")
+    s.add_argument("--images", type=positive_int, required=True, help="number of scene images")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--backgrounds", help="folder of background photos (default: the shared data's)")
     s.add_argument("--prior", choices=["table", "sphere"], default="table",
@@ -356,10 +396,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--gloss", type=float, default=0.0, metavar="P",
                    help="share of objects per image rendered glossy and partly metallic, with highlights "
                         "(0: matte only, as data made before it existed)")
-    s.add_argument("--obj-ids", help="comma-separated subset of the models' ids")
-    s.add_argument("--workers", type=int, default=2, help="render processes")
+    s.add_argument("--obj-ids", type=id_list, help="comma-separated subset of the models' ids")
+    s.add_argument("--workers", type=positive_int, default=2, help="render processes")
     s.add_argument("--depth", action="store_true", help="also write depth images (depth/, for VSD)")
-    s.add_argument("--mesh-faces", type=int, default=None, metavar="N",
+    s.add_argument("--mesh-faces", type=positive_int, default=None, metavar="N",
                    help="render the objects decimated to about N faces: faster on the CPU rasteriser, "
                         "slightly smoother colours (default: the full meshes)")
     s.add_argument("--preview", help="PNG montage of samples, boxes, visible fractions and crops")
@@ -384,12 +424,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--method", choices=["dalsr", "cvml", "cvam"], default="cvam")
     s.add_argument("--encoder", choices=["plain", "resnet"], default="plain",
                    help="plain strided convs (CVML-base) or residual blocks (CVML-18 style)")
-    s.add_argument("--size", type=int, default=64, help="crop side in pixels (thesis: 128)")
-    s.add_argument("--latent", type=int, default=128)
-    s.add_argument("--minutes", type=float, default=45.0, help="autoencoder time budget")
-    s.add_argument("--reg-minutes", type=float, default=5.0, help="time budget per MLP regressor")
+    s.add_argument("--size", type=positive_int, default=64, help="crop side in pixels (thesis: 128)")
+    s.add_argument("--latent", type=positive_int, default=128)
+    s.add_argument("--minutes", type=positive_float, default=45.0, help="autoencoder time budget")
+    s.add_argument("--reg-minutes", type=positive_float, default=5.0, help="time budget per MLP regressor")
     s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--max-images", type=int, help="use only the first N scene images")
+    s.add_argument("--max-images", type=positive_int, help="use only the first N scene images")
     s.add_argument("--models-info", help="models_info.json (default: computed from the meshes)")
     s.set_defaults(func=cmd_train)
 
@@ -397,27 +437,27 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--model", required=True, help="bundle folder, e.g. models/lmo")
     s.add_argument("--data", required=True, help="the 'synth' split to fit on (the bundle's own, normally)")
     s.add_argument("--out", help="write the refitted bundle here (default: in place)")
-    s.add_argument("--reg-minutes", type=float, default=5.0, help="time budget per MLP regressor")
+    s.add_argument("--reg-minutes", type=positive_float, default=5.0, help="time budget per MLP regressor")
     s.add_argument("--seed", type=int, default=0)
     s.set_defaults(func=cmd_refit_heads)
 
     s = sub.add_parser("train-detector", help="train the 2D detector on synth scenes and add it to a bundle")
     s.add_argument("--data", required=True, help="a 'synth' split")
     s.add_argument("--model", required=True, help="the bundle that gets detector.onnx")
-    s.add_argument("--minutes", type=float, default=60.0, help="training time budget (cosine schedule over it)")
-    s.add_argument("--width", type=int, default=32, help="base channel width of the network")
-    s.add_argument("--input", type=int, nargs=2, default=(320, 240), metavar=("W", "H"), help="network input size")
-    s.add_argument("--batch", type=int, default=32)
+    s.add_argument("--minutes", type=positive_float, default=60.0, help="training time budget (cosine schedule over it)")
+    s.add_argument("--width", type=positive_int, default=32, help="base channel width of the network")
+    s.add_argument("--input", type=positive_int, nargs=2, default=(320, 240), metavar=("W", "H"), help="network input size")
+    s.add_argument("--batch", type=positive_int, default=32)
     s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--max-images", type=int, default=None, help="use only the first N images")
+    s.add_argument("--max-images", type=positive_int, default=None, help="use only the first N images")
     s.set_defaults(func=cmd_train_detector)
 
     s = sub.add_parser("ablate", help="regressor ablations (thesis Tables 4.1, 4.2) on the synthetic validation split")
     s.add_argument("--model", required=True, help="bundle whose frozen encoder gives the latent codes")
     s.add_argument("--data", required=True, help="the 'synth' split the bundle was trained on")
     s.add_argument("--json", required=True, help="where the tables go (the report command reads it)")
-    s.add_argument("--mlp-minutes", type=float, default=1.0, help="time budget of each MLP")
-    s.add_argument("--max-train", type=int, default=20000, help="subsample the training crops to this many")
+    s.add_argument("--mlp-minutes", type=positive_float, default=1.0, help="time budget of each MLP")
+    s.add_argument("--max-train", type=positive_int, default=20000, help="subsample the training crops to this many")
     s.add_argument("--seed", type=int, default=0)
     s.set_defaults(func=cmd_ablate)
 
@@ -427,19 +467,19 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", required=True, help="report folder")
     s.add_argument("--ablate", help="JSON written by 'app.py ablate' (Tables 4.1 / 4.2)")
     s.add_argument("--reuse", action="store_true", help="reuse evaluation JSONs already in --out")
-    s.add_argument("--max-frames", type=int)
+    s.add_argument("--max-frames", type=positive_int)
     s.set_defaults(func=cmd_report)
 
     s = sub.add_parser("decimate", help="add light overlay meshes (quadric decimation) to a bundle")
     s.add_argument("--model", required=True)
-    s.add_argument("--faces", type=int, default=1500, help="target triangle count per object")
+    s.add_argument("--faces", type=positive_int, default=1500, help="target triangle count per object")
     s.set_defaults(func=cmd_decimate)
 
     s = sub.add_parser("pack-scene", help="a BOP scene as a recording: frames in one MJPEG video + its JSON files")
     s.add_argument("--data", required=True, help="BOP scene folder")
     s.add_argument("--out", required=True, help="recording folder (rgb.avi, scene_camera.json, scene_gt.json)")
-    s.add_argument("--quality", type=int, default=95, help="JPEG quality of the frames")
-    s.add_argument("--fps", type=float, default=10.0, help="frame rate written into the video")
+    s.add_argument("--quality", type=jpeg_quality, default=95, help="JPEG quality of the frames")
+    s.add_argument("--fps", type=positive_float, default=10.0, help="frame rate written into the video")
     s.set_defaults(func=cmd_pack_scene)
 
     s = sub.add_parser("eval", help="run a bundle on a BOP scene and score it")
@@ -450,7 +490,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="latent regression (the thesis) or the AAE codebook baseline")
     s.add_argument("--json", required=True, help="metrics JSON to write")
     s.add_argument("--bop-csv", help="BOP results CSV (default: METHOD_lmo-test.csv beside the JSON)")
-    s.add_argument("--max-frames", type=int)
+    s.add_argument("--max-frames", type=positive_int)
     s.set_defaults(func=cmd_eval)
 
     s = sub.add_parser("imu", help="compare tracked rotations with an IMU fixed to the object")
@@ -461,7 +501,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--mode", choices=["full", "simple"], default="full",
                    help="full: estimate clock offset, mounting and world rotations; simple: the "
                         "thesis's relative-to-first-sample comparison")
-    s.add_argument("--max-gap", type=float, default=0.25, help="never interpolate across IMU gaps longer (s)")
+    s.add_argument("--max-gap", type=positive_float, default=0.25, help="never interpolate across IMU gaps longer (s)")
+    s.add_argument("--time-offset", type=finite_float, default=None, metavar="S",
+                   help="IMU clock minus camera clock in seconds (default: estimated from the angular speeds)")
+    s.add_argument("--max-offset", type=positive_float, default=2.0, metavar="S",
+                   help="search the clock offset within +- S seconds (default 2)")
     s.set_defaults(func=cmd_imu)
 
     s = sub.add_parser("bench", help="per-stage latency of the live pipeline")
@@ -469,12 +513,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--source", default=str(Path(__file__).resolve().parents[1] / "demo" / "lmo_dev"),
                    help="default: the bundled recording")
     s.add_argument("--calib")
-    s.add_argument("--frames", type=int, default=50)
+    s.add_argument("--frames", type=positive_int, default=50)
     s.add_argument("--boxes", choices=["auto", "gt", "detector"], default="detector",
                    help="detector (default; the real pipeline) or ground-truth boxes")
-    s.add_argument("--detect-every", type=int, default=1, metavar="N")
+    s.add_argument("--detect-every", type=positive_int, default=1, metavar="N")
     s.add_argument("--obj-ids", type=int, nargs="+", help="track only these objects (e.g. one, for the 1-object case)")
-    s.add_argument("--skip-first", type=int, default=2, help="warm-up frames left out of the statistics")
+    s.add_argument("--skip-first", type=nonnegative_int, default=2, help="warm-up frames left out of the statistics")
     s.add_argument("--rerun", choices=["save", "off"], default="save")
     s.add_argument("--no-overlay", action="store_true")
     s.add_argument("--out", help="keep the run folder here")
@@ -485,7 +529,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--data", required=True, help="BOP scene folder")
     s.add_argument("--models", required=True, help="folder of obj_NNNNNN.ply")
     s.add_argument("--out", help="output folder")
-    s.add_argument("--max-frames", type=int, default=None)
+    s.add_argument("--max-frames", type=positive_int, default=None)
     s.set_defaults(func=cmd_preview)
 
     s = sub.add_parser("models-info", help="compute BOP models_info.json (diameter, box, symmetries)")
@@ -511,6 +555,10 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    except OSError as e:  # a path that is missing, a folder, a file where a folder should be, not writable
+        where = f": {e.filename}" if getattr(e, "filename", None) else ""
+        print(f"error: {e.strerror or e}{where}", file=sys.stderr)
+        return 1
     except Exception as e:  # a bug, not bad input: one line unless asked for more
         if os.environ.get("AUTOPOSE_DEBUG"):
             raise

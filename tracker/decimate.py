@@ -34,24 +34,23 @@ def decimate_mesh(mesh, faces: int):
 def add_overlay_meshes(bundle_dir, faces: int = 1500, log=print) -> dict[int, str]:
     """Write ``meshes/overlay/obj_NNNNNN.ply`` for every object of a bundle and list them in
     its manifest (``overlay_mesh`` per object), re-hashing the bundle."""
-    from .bundle import open_bundle, update_manifest
+    from .bundle import update_manifest
     from .meshes import load_mesh
-    b = open_bundle(bundle_dir)  # verified before anything changes
+    root = Path(bundle_dir)
     out = {}
-    (b.root / "meshes" / "overlay").mkdir(parents=True, exist_ok=True)
-    for o in b.objects:
-        m = load_mesh(b.root / o["mesh"], o["id"]).mesh
-        small = decimate_mesh(m, faces)
-        rel = f"meshes/overlay/obj_{int(o['id']):06d}.ply"
-        small.export(b.root / rel)
-        out[int(o["id"])] = rel
-        log(f"{o['name']}: {len(m.faces)} -> {len(small.faces)} faces")
 
-    def change(manifest):
+    def change(manifest):  # runs once the bundle is verified: nothing is written before
+        (root / "meshes" / "overlay").mkdir(parents=True, exist_ok=True)
         for o in manifest["objects"]:
-            o["overlay_mesh"] = out[int(o["id"])]
+            m = load_mesh(root / o["mesh"], o["id"]).mesh
+            small = decimate_mesh(m, faces)
+            rel = f"meshes/overlay/obj_{int(o['id']):06d}.ply"
+            small.export(root / rel)
+            out[int(o["id"])] = rel
+            o["overlay_mesh"] = rel
+            log(f"{o.get('name', o['id'])}: {len(m.faces)} -> {len(small.faces)} faces")
         manifest["overlay_faces"] = faces
-    update_manifest(b.root, change)
+    update_manifest(root, change)
     return out
 
 

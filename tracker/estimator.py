@@ -62,10 +62,11 @@ class PoseEstimator:
         self.bundle = bundle if isinstance(bundle, Bundle) else open_bundle(bundle)
         m = self.bundle.manifest
         self.size = int(m["input_size"])
-        self.method = m["method"]
+        self.method = m.get("method", "?")
         self.obj_ids = [int(o["id"]) for o in m["objects"]]
         self.session = make_session(self.bundle.path("encoder"), threads)
-        self.head = self.bundle.load_joblib("pose_head")
+        from .regressors import PoseHead
+        self.head = self.bundle.load_joblib("pose_head", PoseHead)
         self.conditional = len(self.session.get_inputs()) > 1
         self._pools = None
         if single_thread_math:  # after the libraries are loaded: threadpoolctl sees only those
@@ -113,7 +114,8 @@ class PoseEstimator:
         mu = self.encode(self.crops(image_rgb, boxes), ids)
         t1 = time.perf_counter()
         if mode == "aae" and self.head.codebook is None:
-            self.head.codebook = self.bundle.load_joblib("codebook")
+            from .regressors import Codebook
+            self.head.codebook = self.bundle.load_joblib("codebook", Codebook)
         with self._pools.limit(limits=1) if self._pools is not None else contextlib.nullcontext():
             R, t = self.head.predict(mu, ids, boxes, K, mode=mode)
         if timings is not None:

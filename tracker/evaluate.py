@@ -51,6 +51,8 @@ def evaluate(model_dir, scene_dir, json_path=None, boxes: str = "gt", mode: str 
         detector = Detector(est.bundle, threads=2)
     scene = load_scene(scene_dir, require_gt=True)
     im_ids = sorted(scene.gt)[:max_frames] if max_frames else sorted(scene.gt)
+    if not im_ids:
+        raise UserError(f"{scene_dir}: its ground truth (scene_gt.json) lists no images; nothing to evaluate")
     mesh_dir = Path(model_dir) / "meshes"
     gt_ids = sorted({g.obj_id for i in im_ids for g in scene.gt[i]})
     outside = [o for o in gt_ids if o not in est.obj_ids]

@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .errors import UserError
+
 # the thesis's figures (../shared/METHOD.md)
 THESIS = {
     "table_5_3": {"AAE": {"ar_mssd": 0.095, "ar_mspd": 0.254}, "CVML-Pose": {"ar_mssd": 0.347, "ar_mspd": 0.714},
@@ -69,6 +71,23 @@ def latent_tsne(model_dir, scene_dir, seed: int = 0, max_frames=None):
     return xy, np.array(objs)
 
 
+ABLATE_KEYS = ("train", "validation", "note", "mlp_minutes", "table_4_1", "table_4_2a", "table_4_2b")
+
+
+def _read_ablate(path) -> dict:
+    p = Path(path)
+    if not p.is_file():
+        raise UserError(f"--ablate {p}: file not found (write it with 'app.py ablate ... --json {p}')")
+    try:
+        a = json.loads(p.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        raise UserError(f"--ablate {p}: not a JSON file") from None
+    missing = [k for k in ABLATE_KEYS if not isinstance(a, dict) or k not in a]
+    if missing:
+        raise UserError(f"--ablate {p}: not written by 'app.py ablate' (missing {', '.join(missing)})")
+    return a
+
+
 def build_report(model_dir, scene_dir, out_dir, ablate_json=None, reuse: bool = False, max_frames=None,
                  log=print) -> Path:
     from .bundle import open_bundle
@@ -78,6 +97,7 @@ def build_report(model_dir, scene_dir, out_dir, ablate_json=None, reuse: bool = 
     if scene_dir is None:
         from .paths import DEMO_RECORDING
         scene_dir = DEMO_RECORDING
+    ablate = _read_ablate(ablate_json) if ablate_json else None  # fail before the long evaluations
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     bundle = open_bundle(model_dir)
@@ -87,7 +107,12 @@ def build_report(model_dir, scene_dir, out_dir, ablate_json=None, reuse: bool = 
     ev = {}
     for boxes, mode in runs:
         p = out / f"eval_{boxes}_{mode}.json"
-        old = json.loads(p.read_text()) if reuse and p.is_file() else None
+        old = None
+        if reuse and p.is_file():
+            try:
+                old = json.loads(p.read_text())
+            except (json.JSONDecodeError, UnicodeDecodeError):
+                log(f"warning: {p} is unreadable; evaluating again")
         if old and old.get("data") == str(scene_dir) and old.get("model") == str(model_dir) \
                 and old.get("max_frames") == max_frames:
             ev[boxes, mode] = old
@@ -156,8 +181,8 @@ def build_report(model_dir, scene_dir, out_dir, ablate_json=None, reuse: bool = 
 
     # Tables 4.1 / 4.2
     md += ["## Tables 4.1 and 4.2: regressor ablations (synthetic validation split)", ""]
-    if ablate_json and Path(ablate_json).is_file():
-        a = json.loads(Path(ablate_json).read_text())
+    if ablate is not None:
+        a = ablate
         md += [f"From `{ablate_json}`: {a['train']} training / {a['validation']} validation crops, "
                f"{a['note']}; each MLP trained for at most {a['mlp_minutes']} min.", "",
                "**Table 4.1, rotation** (ADD(I) with the true translation)", "",
