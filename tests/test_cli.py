@@ -100,10 +100,9 @@ def test_numeric_flags_are_checked_before_any_work(tmp_path, data_dir):
 
 def test_an_unwritable_output_is_a_one_line_error(tmp_path, data_dir):
     (tmp_path / "taken").write_text("a file, not a folder")
-    p = run("synth", "--models", data_dir / "lmo" / "models", "--out", tmp_path / "taken", "--images", 1,
-            "--obj-ids", 1, "--workers", 1)
+    p = run("pack-scene", "--data", data_dir / "lmo" / "dev", "--out", tmp_path / "taken" / "rec")
     assert_one_line_error(p)
-    assert "taken" in p.stderr
+    assert "Not a directory" in p.stderr and "taken" in p.stderr
 
 
 def test_empty_ground_truth_and_missing_ablate_tables_are_clear_errors(tmp_path, data_dir):

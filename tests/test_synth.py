@@ -120,6 +120,10 @@ def test_bad_input(data_dir, tmp_path):
         generate(_cfg(data_dir, p_table=1.5), tmp_path / "a", 2, workers=1, progress=False)
     with pytest.raises(UserError, match="--gloss"):
         generate(_cfg(data_dir, p_gloss=-0.1), tmp_path / "a", 2, workers=1, progress=False)
+    (tmp_path / "used").mkdir()
+    (tmp_path / "used" / "synth_config.json").write_text("{}")
+    with pytest.raises(UserError, match="not an empty folder"):
+        generate(_cfg(data_dir), tmp_path / "used", 2, workers=1, progress=False)
     cfg = _cfg(data_dir)
     cfg.backgrounds_dir = str(tmp_path / "missing")
     with pytest.raises(UserError, match="backgrounds folder not found"):

@@ -253,6 +253,8 @@ def generate(cfg: SynthConfig, out_dir, n_images: int, workers: int = 2, batch: 
     if cfg.obj_ids is None:
         cfg.obj_ids = sorted(models)
     out = Path(out_dir)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise UserError(f"--out {out} is not an empty folder: give a new one (old images would be mixed in)")
     for chunk in range((n_images - 1) // CHUNK + 1):
         for sub in ("rgb", "mask_visib", "clean") + (("depth",) if cfg.depth else ()):
             (out / f"{chunk:06d}" / sub).mkdir(parents=True, exist_ok=True)
