@@ -231,3 +231,23 @@ def test_gloss_changes_the_object_pixels_not_the_annotations(data_dir, tmp_path)
     on = np.any([cv2.imread(str(m), cv2.IMREAD_GRAYSCALE) > 0 for m in masks], axis=0)
     diff = np.abs(ia - ib).sum(axis=2)
     assert diff[on].mean() > 5 * max(diff[~on].mean(), 0.5)  # the objects changed, the background did not
+
+
+def test_an_interrupted_split_keeps_only_annotated_images(data_dir, tmp_path, monkeypatch):
+    from tracker.synth import engine
+    real, calls = engine._render_batch, []
+
+    def stop_in_the_second_batch(args):
+        calls.append(1)
+        recs = real(args)  # its images are written ...
+        if len(calls) == 2:
+            raise KeyboardInterrupt  # ... but their records never arrive
+        return recs
+    monkeypatch.setattr(engine, "_render_batch", stop_in_the_second_batch)
+    rep = generate(_cfg(data_dir, seed=5), tmp_path / "s", 1001, workers=1, batch=2, progress=False)
+    assert rep.interrupted and rep.images == 2
+    assert not (tmp_path / "s" / "000001").exists()  # the second chunk never got an image
+    scene = load_scene(tmp_path / "s" / "000000", require_gt=True)
+    assert scene.im_ids == [0, 1]
+    for sub in ("rgb", "mask_visib", "clean"):
+        assert {int(f.name[:6]) for f in (tmp_path / "s" / "000000" / sub).iterdir()} == {0, 1}, sub

@@ -20,6 +20,7 @@ from __future__ import annotations
 import multiprocessing as mp
 import os
 import resource
+import shutil
 import sys
 import time
 from dataclasses import asdict, dataclass, field
@@ -232,6 +233,21 @@ class _ChunkWriter:
                               ("clean_crops", "win")):
                 _dump_json(root / f"{name}.json", {k: c[key][k] for k in order})
 
+    def prune(self, n_chunks: int):
+        """After an interruption: delete the files of images whose records never arrived (a
+        worker stopped between writing them and returning), and chunk folders left empty,
+        so that what remains is a loadable split."""
+        for chunk in range(n_chunks):
+            root = self.out / f"{chunk:06d}"
+            kept = set(self.chunks.get(chunk, {"cam": {}})["cam"])
+            if not kept:
+                shutil.rmtree(root, ignore_errors=True)
+                continue
+            for sub in ("rgb", "mask_visib", "clean", "depth"):
+                for f in (root / sub).glob("*") if (root / sub).is_dir() else ():
+                    if str(int(f.name.split("_")[0].split(".")[0])) not in kept:
+                        f.unlink()
+
 
 def _peak_rss_mb(who) -> float:
     return resource.getrusage(who).ru_maxrss / 1024.0
@@ -301,6 +317,8 @@ def generate(cfg: SynthConfig, out_dir, n_images: int, workers: int = 2, batch: 
             for k in ("scene", "crop"):
                 if k in _W:
                     _W.pop(k).close()
+        if interrupted:
+            writer.prune((n_images - 1) // CHUNK + 1)
     dt = time.perf_counter() - t0
     meta.update(images_written=done, seconds=round(dt, 1), interrupted=interrupted)
     _dump_json(out / "synth_config.json", meta)
