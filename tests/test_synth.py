@@ -215,7 +215,13 @@ def test_join_splits_links_the_scenes_in_order(small_split, tmp_path, data_dir):
                          obj_ids=[1, 5]), third, 1, workers=1, progress=False)
     with pytest.raises(UserError, match="differ in obj_ids"):
         join_splits(tmp_path / "j3", [small_split, third])
-    assert not (tmp_path / "j2").exists() and not (tmp_path / "j3").exists()
+    import shutil
+    broken = tmp_path / "broken"
+    shutil.copytree(other, broken)
+    (broken / "000000" / "scene_gt.json").write_text("{not json")
+    with pytest.raises(UserError, match="scene_gt.json"):
+        join_splits(tmp_path / "j4", [small_split, broken])
+    assert not any((tmp_path / j).exists() for j in ("j2", "j3", "j4"))
 
 
 def test_gloss_changes_the_object_pixels_not_the_annotations(data_dir, tmp_path):

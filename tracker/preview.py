@@ -41,6 +41,8 @@ def render_gt_overlays(scene_dir, models_dir, out_dir, max_frames: int | None = 
     scene = load_scene(scene_dir, require_gt=True)
     im_ids = scene.im_ids[:max_frames] if max_frames else scene.im_ids
     obj_ids = sorted({g.obj_id for i in im_ids for g in scene.gt.get(i, [])})
+    if not obj_ids:
+        raise UserError(f"{scene_dir}: its ground truth lists no object instances; nothing to overlay")
     models = load_models(models_dir, obj_ids)
     out = Path(out_dir)
     frames_dir = out / "overlay"

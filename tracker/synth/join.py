@@ -9,6 +9,7 @@ import json
 import time
 from pathlib import Path
 
+from ..bop import load_scene
 from ..crops import split_scene_dirs
 from ..errors import UserError
 
@@ -26,12 +27,18 @@ def join_splits(out_dir, splits, command: str | None = None) -> dict:
         p = Path(s) / "synth_config.json"
         if not p.is_file():
             raise UserError(f"{s}: no synth_config.json (not a 'synth' split)")
-        metas.append(json.loads(p.read_text()))
+        try:
+            metas.append(json.loads(p.read_text()))
+            metas[-1]["config"]["obj_ids"]
+        except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError):
+            raise UserError(f"{p}: unreadable (not written by 'app.py synth')") from None
     for s, m in zip(splits[1:], metas[1:]):
         differ = [k for k in MUST_AGREE if m["config"].get(k) != metas[0]["config"].get(k)]
         if differ:
             raise UserError(f"{s} and {splits[0]} differ in {', '.join(differ)}: they cannot train one bundle")
     scenes = [d.resolve() for s in splits for d in split_scene_dirs(s)]
+    for d in scenes:  # every scene must load (annotations readable, an image for each), before linking any
+        load_scene(d, require_gt=True)
     if out.exists() and any(out.iterdir()):
         raise UserError(f"{out} exists and is not empty; choose a new folder")
     out.mkdir(parents=True, exist_ok=True)
