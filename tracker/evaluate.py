@@ -28,6 +28,16 @@ def gt_boxes(scene, models, im_ids) -> tuple[dict[int, list], str]:
     return {i: [(np.asarray(v.bbox_visib, float), v.visib_fract) for v in recs[i]] for i in im_ids}, VISIB_RENDERED
 
 
+def gt_object_ids(scene, im_ids, known, hint: str = "") -> list[int]:
+    """The objects in the ground truth of ``im_ids``; an error names any not in ``known``."""
+    ids = sorted({g.obj_id for i in im_ids for g in scene.gt.get(i, [])})
+    unknown = [o for o in ids if o not in known]
+    if unknown:
+        raise UserError(f"{scene.root}: the ground truth has object(s) {unknown} that the bundle does not know "
+                        f"({list(known)}){hint}")
+    return ids
+
+
 def gt_instances_with_boxes(gts, boxes, min_visib: float = 0.0, below: bool = False) -> list[tuple]:
     """(obj_id, box, visible fraction) of the ground-truth instances of one image whose visible
     box is not empty, at least ``min_visib`` visible (or, with ``below``, less than it)."""
@@ -54,10 +64,7 @@ def evaluate(model_dir, scene_dir, json_path=None, boxes: str = "gt", mode: str 
     if not im_ids:
         raise UserError(f"{scene_dir}: its ground truth (scene_gt.json) lists no images; nothing to evaluate")
     mesh_dir = Path(model_dir) / "meshes"
-    gt_ids = sorted({g.obj_id for i in im_ids for g in scene.gt[i]})
-    outside = [o for o in gt_ids if o not in est.obj_ids]
-    if outside:
-        raise UserError(f"the scene has object(s) {outside} that the bundle does not know ({est.obj_ids})")
+    gt_ids = gt_object_ids(scene, im_ids, est.obj_ids)
     models = load_models(mesh_dir, gt_ids)
     box_of, _ = gt_boxes(scene, models, im_ids)
     results = []

@@ -129,13 +129,9 @@ def run_track(cfg: TrackConfig, log=print) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     boxes_of = None
     if cfg.boxes in ("auto", "gt") and isinstance(src, BopSceneSource) and src.scene.gt:
-        from .evaluate import gt_boxes
+        from .evaluate import gt_boxes, gt_object_ids
         from .meshes import load_models
-        ids = sorted({g.obj_id for i in src.ids for g in src.scene.gt.get(i, [])})
-        unknown = [o for o in ids if o not in est.obj_ids]
-        if unknown:
-            raise UserError(f"{cfg.source}: the ground truth has object(s) {unknown} that {cfg.model} does not know "
-                            f"({est.obj_ids}); use --boxes detector, or a bundle trained on them")
+        ids = gt_object_ids(src.scene, src.ids, est.obj_ids, "; use --boxes detector, or a bundle trained on them")
         boxes_of, _ = gt_boxes(src.scene, load_models(est.bundle.root / "meshes", ids), src.ids)
     elif cfg.boxes == "gt":
         raise UserError("--boxes gt needs a BOP scene with scene_gt.json")
