@@ -109,6 +109,25 @@ def test_a_bundle_with_a_detector_can_train_another(tiny_detector_bundle, tiny_b
     assert after["files"]["detector.onnx"]["sha256"] != before
 
 
+def test_a_detector_can_start_from_another_runs_weights(tiny_detector_bundle, tiny_bundle, tmp_path):
+    from tracker.bundle import open_bundle
+    from tracker.detector_train import train_detector
+    src = next((tiny_detector_bundle.parent / "lmo.work").glob("detector_ckpt_*.pt"))
+    root = tmp_path / "lmo"
+    shutil.copytree(tiny_bundle, root)
+    logs = []
+    train_detector(tiny_bundle.parent / "split", root, minutes=0.01, width=8, batch=2, init_from=src, log=logs.append)
+    assert any(str(l).startswith("started from the weights of") for l in logs)
+    assert open_bundle(root).manifest["detector"]["training"]["init_from"] == str(src)
+    with pytest.raises(UserError, match="width 8 .* this run has width 4"):
+        train_detector(tiny_bundle.parent / "split", tmp_path / "lmo", minutes=0.01, width=4, batch=2,
+                       init_from=src, log=lambda *a: None)
+    (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(UserError, match="not a detector checkpoint"):
+        train_detector(tiny_bundle.parent / "split", tmp_path / "lmo", minutes=0.01, width=4, batch=2,
+                       init_from=tmp_path / "junk.pt", log=lambda *a: None)
+
+
 def test_tiny_training_exports_and_loads(tiny_detector_bundle, lmo_dev):
     from tracker.bundle import open_bundle
     from tracker.detector import Detector

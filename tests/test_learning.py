@@ -152,6 +152,35 @@ def test_training_resumes_from_its_checkpoint(tiny_split, tmp_path):
         _train(tiny_split, out, "dalsr")  # same --out, another network: a clear error, no traceback
 
 
+def test_training_can_start_from_another_runs_weights(tiny_split, tmp_path):
+    import json
+
+    import torch
+    _train(tiny_split, tmp_path / "a", "cvml")
+    src = tmp_path / "a.work" / "ae_checkpoint.pt"
+    logs = []
+    train_bundle(tiny_split, tmp_path / "b", method="cvml", size=32, latent=16, minutes=0.01, reg_minutes=0.02,
+                 init_from=src, log=logs.append)
+    assert any(str(l).startswith("started from the weights of") for l in logs)
+    m = json.loads((tmp_path / "b" / "manifest.json").read_text())
+    assert m["training"]["init_from"] == str(src)
+    a = torch.load(src, weights_only=True)["model"]
+    b = torch.load(tmp_path / "b.work" / "ae_checkpoint.pt", weights_only=True)
+    assert b["epoch"] == 0 and len(b["hist"]["epoch"]) == 1  # a new history, not the source's
+    # the few steps of a tiny budget move the weights a little: far closer to the source than a fresh start
+    d = max(float((a[k] - b["model"][k]).abs().max()) for k in a if a[k].dtype.is_floating_point)
+    assert d < 0.05
+    with pytest.raises(UserError, match="no such checkpoint"):
+        _train_from(tiny_split, tmp_path / "c", "cvml", tmp_path / "missing.pt")
+    with pytest.raises(UserError, match="not a checkpoint of this network"):
+        _train_from(tiny_split, tmp_path / "d", "dalsr", src)  # another network's weights
+
+
+def _train_from(split, out, method, init_from):
+    return train_bundle(split, out, method=method, size=32, latent=16, minutes=0.01, reg_minutes=0.02,
+                        init_from=init_from, log=lambda *a: None)
+
+
 def test_ablate_tables_on_a_tiny_bundle(tiny_bundle, tmp_path):
     import json
 

@@ -52,3 +52,21 @@ def test_glossy_material_adds_highlights_and_the_default_comes_back():
     # the head light's specular peak: a glossy ball is far brighter at its centre than a matte one
     assert glossy[on].max() > matte[on].max() + 30
     assert np.array_equal(again, matte)
+
+
+def test_a_colour_factor_tints_an_object_and_the_default_comes_back():
+    import trimesh
+    box = trimesh.creation.box(extents=(80.0, 80.0, 80.0)).subdivide()
+    box.visual.vertex_colors = np.tile([230, 230, 230, 255], (len(box.vertices), 1))
+    K = np.array([[500.0, 0, 64], [0, 500.0, 64], [0, 0, 1]])
+    pose = [(1, np.eye(3), np.array([0.0, 0.0, 600.0]))]
+    with Renderer(128, 128, {1: box}) as r:
+        white, depth = r.render(K, pose)
+        r.set_material(1, colour=(0.9, 0.8, 0.0))  # linear yellow
+        yellow, _ = r.render(K, pose)
+        r.set_material(1)
+        again, _ = r.render(K, pose)
+    on = depth > 0
+    w, y = white[on].mean(0), yellow[on].mean(0)
+    assert abs(w[0] - w[2]) < 10 and y[0] > y[2] + 100 and y[1] > y[2] + 100
+    assert np.array_equal(again, white)

@@ -120,6 +120,8 @@ def test_bad_input(data_dir, tmp_path):
         generate(_cfg(data_dir, p_table=1.5), tmp_path / "a", 2, workers=1, progress=False)
     with pytest.raises(UserError, match="--gloss"):
         generate(_cfg(data_dir, p_gloss=-0.1), tmp_path / "a", 2, workers=1, progress=False)
+    with pytest.raises(UserError, match="distractor style"):
+        generate(_cfg(data_dir, distractors="many"), tmp_path / "a", 2, workers=1, progress=False)
     (tmp_path / "used").mkdir()
     (tmp_path / "used" / "synth_config.json").write_text("{}")
     with pytest.raises(UserError, match="not an empty folder"):
@@ -257,3 +259,34 @@ def test_an_interrupted_split_keeps_only_annotated_images(data_dir, tmp_path, mo
     assert scene.im_ids == [0, 1]
     for sub in ("rgb", "mask_visib", "clean"):
         assert {int(f.name[:6]) for f in (tmp_path / "s" / "000000" / sub).iterdir()} == {0, 1}, sub
+
+
+def test_hard_distractors_are_textured_tinted_and_unannotated(data_dir, tmp_path):
+    from dataclasses import asdict
+
+    from tracker.synth import engine
+    from tracker.synth.randomise import target_palette
+    cfg = _cfg(data_dir, seed=3, distractors="hard")
+    engine._init_worker(asdict(cfg))
+    try:
+        assert engine._W["n_dis"] == 36
+        cols = [np.unique(np.asarray(engine._W["scene"]._meshes[engine.DISTRACTOR_BASE + i].primitives[0].color_0)[:, :3],
+                          axis=0).shape[0] for i in range(3)]
+        assert min(cols) > 20  # a photo's patch, not a flat colour
+        for k in range(20):
+            inst, n_t, _, _ = engine._sample_instances(np.random.default_rng([3, k]), cfg)
+            n_d = sum(i >= engine.DISTRACTOR_BASE for i, _, _ in inst)
+            assert n_d >= engine.HARD_DISTRACTORS_PER_IMAGE[0] and all(i in OBJS for i, _, _ in inst[:n_t])
+    finally:
+        for k in ("scene", "crop"):
+            engine._W.pop(k).close()
+    # the palette is the targets' own colours
+    from tracker.meshes import load_models
+    models = load_models(cfg.models_dir, OBJS)
+    pal = target_palette([models[o].mesh for o in OBJS], np.random.default_rng(0), per_mesh=4)
+    own = np.concatenate([np.asarray(models[o].mesh.visual.vertex_colors)[:, :3] for o in OBJS]) / 255.0
+    assert pal.shape == (12, 3) and all(np.abs(own - c).sum(1).min() < 1e-9 for c in pal)
+    # a split renders and only the targets are annotated
+    generate(cfg, tmp_path / "h", 2, workers=1, progress=False)
+    scene = load_scene(tmp_path / "h" / "000000", require_gt=True)
+    assert scene.im_ids == [0, 1] and {g.obj_id for i in scene.im_ids for g in scene.gt[i]} <= set(OBJS)

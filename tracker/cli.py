@@ -95,7 +95,7 @@ def cmd_synth(args) -> int:
     obj_ids = args.obj_ids
     cfg = SynthConfig(models_dir=str(args.models), backgrounds_dir=str(args.backgrounds or shared_data() / "backgrounds"),
                       seed=args.seed, prior=args.prior, obj_ids=obj_ids, mesh_faces=args.mesh_faces, depth=args.depth,
-                      p_table=args.p_table, p_gloss=args.gloss)
+                      p_table=args.p_table, p_gloss=args.gloss, distractors=args.distractors)
     rep = generate(cfg, args.out, args.images, workers=args.workers, command="app.py " + " ".join(sys.argv[1:]))
     state = "INTERRUPTED after" if rep.interrupted else "wrote"
     print(f"{state} {rep.images} images, {rep.instances} instances ({rep.crops_visib_ge_0_1} with visib >= 0.1) "
@@ -137,7 +137,7 @@ def cmd_train(args) -> int:
     m = train_bundle(args.data, args.out, method=args.method, size=args.size, latent=args.latent,
                      minutes=args.minutes, seed=args.seed, max_images=args.max_images,
                      models_info_path=args.models_info, reg_minutes=args.reg_minutes, encoder=args.encoder,
-                     command="app.py " + " ".join(sys.argv[1:]))
+                     init_from=args.init_from, command="app.py " + " ".join(sys.argv[1:]))
     _print_validation(args.out, m)
     return 0
 
@@ -154,7 +154,7 @@ def cmd_train_detector(args) -> int:
     from .detector_train import train_detector
     d = train_detector(args.data, args.model, minutes=args.minutes, width=args.width, input_w=args.input[0],
                        input_h=args.input[1], batch=args.batch, seed=args.seed, max_images=args.max_images,
-                       command="app.py " + " ".join(sys.argv[1:]))
+                       init_from=args.init_from, command="app.py " + " ".join(sys.argv[1:]))
     v = d["training"]["validation_synthetic"]
     from .report import fmt_num
     print(f"detector added to {args.model}: synthetic validation AP {fmt_num(v['ap'])}, AP50 {fmt_num(v['ap50'])}")
@@ -396,6 +396,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--gloss", type=float, default=0.0, metavar="P",
                    help="share of objects per image rendered glossy and partly metallic, with highlights "
                         "(0: matte only, as data made before it existed)")
+    s.add_argument("--distractors", choices=["plain", "hard"], default="plain",
+                   help="plain: 0-5 random primitives per image (as data made before); hard: 2-8 primitives "
+                        "textured from the photos and tinted, half the time with the targets' colours")
     s.add_argument("--obj-ids", type=id_list, help="comma-separated subset of the models' ids")
     s.add_argument("--workers", type=positive_int, default=2, help="render processes")
     s.add_argument("--depth", action="store_true", help="also write depth images (depth/, for VSD)")
@@ -431,6 +434,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--max-images", type=positive_int, help="use only the first N scene images")
     s.add_argument("--models-info", help="models_info.json (default: computed from the meshes)")
+    s.add_argument("--init-from", metavar="CKPT",
+                   help="start from another run's ae_checkpoint.pt (same network), e.g. to train on more data")
     s.set_defaults(func=cmd_train)
 
     s = sub.add_parser("refit-heads", help="refit a bundle's regressors and AAE codebook on its frozen encoder")
@@ -450,6 +455,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--batch", type=positive_int, default=32)
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--max-images", type=positive_int, default=None, help="use only the first N images")
+    s.add_argument("--init-from", metavar="CKPT",
+                   help="start from another run's detector_ckpt_*.pt (same width and classes), e.g. to fine-tune on new data")
     s.set_defaults(func=cmd_train_detector)
 
     s = sub.add_parser("ablate", help="regressor ablations (thesis Tables 4.1, 4.2) on the synthetic validation split")

@@ -11,6 +11,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import pickle
 import shutil
 import sys
 import time
@@ -132,9 +133,27 @@ def augment_batch(x, boxes_list, rng: np.random.Generator, torch):
     return x.clamp(0, 1), out_boxes
 
 
+def _init_weights(torch, path, width: int, classes: list[int]) -> dict:
+    """The network weights of another run's detector checkpoint, checked against this run's
+    width and classes (tensors and plain containers only are read: no code runs)."""
+    try:
+        z = torch.load(path, weights_only=True)
+        ok = isinstance(z, dict) and z.get("width") == width and z.get("classes") == classes
+        if not ok:
+            raise UserError(f"--init-from {path}: a detector of width {z.get('width') if isinstance(z, dict) else '?'} "
+                            f"and classes {z.get('classes') if isinstance(z, dict) else '?'}, this run has width "
+                            f"{width} and classes {classes}")
+        return z["model"]
+    except FileNotFoundError:
+        raise UserError(f"--init-from {path}: no such file (it takes a detector_ckpt_*.pt from a bundle's .work folder)") from None
+    except (RuntimeError, KeyError, ValueError, TypeError, EOFError, pickle.UnpicklingError) as e:
+        raise UserError(f"--init-from {path}: not a detector checkpoint ({type(e).__name__})") from None
+
+
 def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32, input_w: int = 320,
                    input_h: int = 240, batch: int = 32, lr: float = 2e-3, seed: int = 0, max_images=None,
-                   val_parts: int = 20, threads: int = 2, log=print, command: str | None = None) -> dict:
+                   val_parts: int = 20, threads: int = 2, init_from=None, log=print,
+                   command: str | None = None) -> dict:
     from .train import _torch
     torch = _torch()
     from .bundle import open_bundle, update_manifest
@@ -172,6 +191,15 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
             opt.load_state_dict(z["opt"])
             state = z["state"]
             log(f"resumed from {ckpt}: step {state['step']}, {state['seconds'] / 60:.1f} min done")
+        else:
+            raise UserError(f"{ckpt} is the checkpoint of another network (width or classes differ): "
+                            f"delete it to start afresh")
+        if init_from:
+            log("--init-from ignored: resuming this run's own checkpoint")
+    elif init_from:
+        model.load_state_dict(_init_weights(torch, init_from, width, spec.classes))
+        state["init_from"] = str(init_from)
+        log(f"started from the weights of {init_from}; new optimiser, schedule and budget")
     budget = 60.0 * minutes
     log(f"detector: {n_params / 1e6:.2f} M parameters, {len(tr)} train / {len(va)} validation images, "
         f"{input_w}x{input_h} input, budget {minutes:.0f} min")
@@ -246,7 +274,8 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
                      "width": width, "steps": state["step"], "batch": batch,
                      "minutes": round(state["seconds"] / 60, 1), "seed": seed, "onnx_max_abs_diff": diff,
                      "validation_synthetic": ap, "command": command or "app.py " + " ".join(sys.argv[1:]),
-                     "loss_history": state["history"][-20:]}
+                     "loss_history": state["history"][-20:],
+                     **({"init_from": state["init_from"]} if "init_from" in state else {})}
 
     def change(manifest):  # the bundle as it was is verified; now replace its detector
         shutil.move(staged, path)

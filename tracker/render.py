@@ -143,15 +143,18 @@ class Renderer:
     def set_ambient(self, ambient) -> None:
         self.scene.ambient_light = np.broadcast_to(np.asarray(ambient, dtype=np.float64), (3,)).copy()
 
-    def set_material(self, obj_id: int, metallic: float = METALLIC, roughness: float = ROUGHNESS) -> None:
-        """Make an object glossier or more metallic for the following renders (every instance of it);
-        the defaults give back the matte material. pyrender reads the factors at each draw."""
+    def set_material(self, obj_id: int, metallic: float = METALLIC, roughness: float = ROUGHNESS,
+                     colour=(1.0, 1.0, 1.0)) -> None:
+        """Make an object glossier, more metallic or tinted (``colour``: linear RGB factor on its
+        vertex colours) for the following renders (every instance of it); the defaults give back
+        the matte, untinted material. pyrender reads the factors at each draw."""
         if int(obj_id) not in self._meshes:
             raise UserError(f"no mesh for object {obj_id} in the renderer (has {self.obj_ids})")
         for prim in self._meshes[int(obj_id)].primitives:
             if prim.material is not None:
                 prim.material.metallicFactor = float(metallic)
                 prim.material.roughnessFactor = float(roughness)
+                prim.material.baseColorFactor = np.append(np.asarray(colour, np.float64).ravel()[:3], 1.0)
 
     def set_camera(self, K: np.ndarray) -> None:
         K = np.asarray(K, dtype=np.float64)

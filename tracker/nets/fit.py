@@ -3,6 +3,7 @@ validation L2, the thesis's online augmentations, checkpoints and resume."""
 from __future__ import annotations
 
 import math
+import pickle
 import time
 from pathlib import Path
 
@@ -73,9 +74,11 @@ def onehot(obj_idx: np.ndarray, n: int) -> torch.Tensor:
 
 def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, out_dir: Path,
                       minutes: float = 45.0, batch: int = 128, lr: float = 1e-3, patience: int = 50,
-                      seed: int = 0, log=print) -> dict:
+                      seed: int = 0, init_from=None, log=print) -> dict:
     """Train until the time budget, early stopping, or 1000 epochs. Resumes from
-    ``out_dir/ae_checkpoint.pt`` when it exists. Returns the training history."""
+    ``out_dir/ae_checkpoint.pt`` when it exists; otherwise ``init_from`` (another run's
+    checkpoint) gives the starting weights and optimiser state, with a fresh budget, history
+    and best validation loss (the validation crops differ). Returns the training history."""
     torch.manual_seed(seed)
     g = torch.Generator().manual_seed(seed)
     opt = torch.optim.AdamW(model.parameters(), lr=lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=1e-2)
@@ -84,19 +87,29 @@ def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, ou
     best_path = Path(out_dir) / "ae_best.pt"
     hist = {"epoch": [], "train_l2": [], "val_l2": [], "lr": [], "seconds": []}
     start_epoch, best, since_best, spent = 0, math.inf, 0, 0.0
-    if ckpt.is_file():
-        st = torch.load(ckpt, weights_only=False)
+    source = ckpt if ckpt.is_file() else (Path(init_from) if init_from else None)
+    if source is not None:
         try:
+            st = torch.load(source, weights_only=True)  # tensors and plain containers only: no code runs
             model.load_state_dict(st["model"])
-        except RuntimeError:
-            raise UserError(f"{ckpt} is the checkpoint of another network (method, encoder, size or "
-                            f"objects differ): delete {Path(out_dir)} to start afresh, or train into "
-                            f"another --out") from None
-        opt.load_state_dict(st["opt"])
-        sched.load_state_dict(st["sched"])
+            opt.load_state_dict(st["opt"])
+            sched.load_state_dict(st["sched"])
+        except FileNotFoundError:
+            raise UserError(f"{source}: no such checkpoint (--init-from takes an ae_checkpoint.pt)") from None
+        except (RuntimeError, KeyError, ValueError, TypeError, EOFError, pickle.UnpicklingError) as e:
+            hint = (f"delete {Path(out_dir)} to start afresh, or train into another --out" if source == ckpt
+                    else "--init-from must come from a run with the same --method, --encoder, --size, --latent and objects")
+            raise UserError(f"{source} is not a checkpoint of this network ({type(e).__name__}): {hint}") from None
         g.set_state(st["gen"])
-        start_epoch, best, since_best, hist, spent = st["epoch"] + 1, st["best"], st["since_best"], st["hist"], st["spent"]
-        log(f"resumed from {ckpt} at epoch {start_epoch} ({spent / 60:.1f} min spent, best val L2 {best:.2f})")
+        if source == ckpt:
+            start_epoch, best, since_best, hist, spent = st["epoch"] + 1, st["best"], st["since_best"], st["hist"], st["spent"]
+            log(f"resumed from {ckpt} at epoch {start_epoch} ({spent / 60:.1f} min spent, best val L2 {best:.2f})")
+        else:
+            sched.best, sched.num_bad_epochs = sched.mode_worse, 0  # judged afresh on this run's validation crops
+            log(f"started from the weights of {source} (epoch {st['epoch']}, {st['spent'] / 60:.1f} min there); "
+                f"new budget, history and best validation L2")
+    if ckpt.is_file() and init_from:
+        log(f"--init-from ignored: resuming this run's own checkpoint")
     variational = model.encoder.variational
     cond = model.n_cond > 0
     n = len(x_tr)

@@ -35,11 +35,14 @@ from ..errors import UserError
 from ..visibility import scene_visibility
 from . import priors
 from .randomise import (Backgrounds, camera_effects, cast_shadows, composite, distractor_meshes, jitter_colours,
+                        target_palette, texture_from_photos, tint_distractors,
                         list_backgrounds, sample_lights, sample_materials, table_surface)
 
 CHUNK = 1000
 DEPTH_SCALE = 0.1  # mm per unit of the written depth PNGs (up to 6.5 m)
 DISTRACTOR_BASE = 100000  # renderer ids of distractor meshes
+HARD_DISTRACTORS_PER_IMAGE = (2, 8)
+DISTRACTOR_STYLES = ("plain", "hard")
 
 
 @dataclass
@@ -61,6 +64,10 @@ class SynthConfig:
     # of the matte default (real plastic and ceramic show highlights that vertex colours lack);
     # drawn from their own random stream, so 0 reproduces the images of before byte for byte
     p_gloss: float = 0.0
+    # "plain": 12 primitives with noisy random colours, 0-5 per image (data made before);
+    # "hard": 36 primitives textured from the background photos, 2-8 per image, tinted per
+    # image, half the time with a target's colour (real clutter: yellow cups, white boxes)
+    distractors: str = "plain"
     crop_size: int = 128  # clean targets, rendered in the visibility window (visibility.WINDOW_PAD)
     jpeg_quality: tuple = (70, 95)
     obj_ids: list | None = None
@@ -101,7 +108,11 @@ def _init_worker(cfg_dict: dict):
     from ..render import Renderer
     cfg = SynthConfig(**cfg_dict)
     models = load_models(cfg.models_dir, cfg.obj_ids)
-    dis = distractor_meshes(np.random.default_rng([cfg.seed, 7]), 12)
+    hard = cfg.distractors == "hard"
+    dis = distractor_meshes(np.random.default_rng([cfg.seed, 7]), 36 if hard else 12)
+    bgs = Backgrounds(list_backgrounds(cfg.backgrounds_dir))
+    if hard:
+        texture_from_photos(dis, bgs.images, np.random.default_rng([cfg.seed, 8]))
     meshes = {k: m.mesh for k, m in models.items()}
     if cfg.mesh_faces:
         from ..decimate import decimate_mesh
@@ -119,7 +130,8 @@ def _init_worker(cfg_dict: dict):
         n_dis=len(dis),
         scene=Renderer(cfg.width, cfg.height, meshes),
         crop=Renderer(cfg.crop_size, cfg.crop_size, targets),
-        bgs=Backgrounds(list_backgrounds(cfg.backgrounds_dir)),
+        bgs=bgs,
+        palette=target_palette([models[k].mesh for k in sorted(models)], np.random.default_rng([cfg.seed, 9])),
     )
 
 
@@ -130,7 +142,8 @@ def _sample_instances(rng, cfg: SynthConfig):
     lo, hi = cfg.objects_per_image
     n_t = int(min(len(obj_ids), rng.integers(lo, hi + 1)))
     targets = [int(x) for x in rng.choice(obj_ids, n_t, replace=False)]
-    n_d = int(rng.integers(cfg.distractors_per_image[0], cfg.distractors_per_image[1] + 1))
+    lo_d, hi_d = HARD_DISTRACTORS_PER_IMAGE if cfg.distractors == "hard" else cfg.distractors_per_image
+    n_d = int(rng.integers(lo_d, hi_d + 1))
     dis = [DISTRACTOR_BASE + int(x) for x in rng.integers(0, _W["n_dis"], n_d)]
     ids = targets + dis
     if cfg.prior == "table":
@@ -168,6 +181,9 @@ def render_one(index: int, out_root: str) -> dict:
     lights, ambient = sample_lights(rng)
     if cfg.p_gloss > 0:
         sample_materials(scene, _W["obj_ids"], cfg.p_gloss, np.random.default_rng([cfg.seed, index, 1]))
+    if cfg.distractors == "hard":
+        tint_distractors(scene, [DISTRACTOR_BASE + i for i in range(_W["n_dis"])], _W["palette"],
+                         np.random.default_rng([cfg.seed, index, 2]))
     scene.set_lights(lights)
     scene.set_ambient(ambient)
     rgb, depth = scene.render(K, inst)
@@ -263,6 +279,8 @@ def generate(cfg: SynthConfig, out_dir, n_images: int, workers: int = 2, batch: 
         raise UserError(f"--p-table must be between 0 and 1, got {cfg.p_table}")
     if not 0.0 <= cfg.p_gloss <= 1.0:
         raise UserError(f"--gloss must be between 0 and 1, got {cfg.p_gloss}")
+    if cfg.distractors not in DISTRACTOR_STYLES:
+        raise UserError(f"unknown distractor style '{cfg.distractors}' (choose from {', '.join(DISTRACTOR_STYLES)})")
     list_backgrounds(cfg.backgrounds_dir)  # fail early, in the parent
     from ..meshes import load_models
     models = load_models(cfg.models_dir, cfg.obj_ids)  # fail early (and warn once) on bad meshes

@@ -177,6 +177,52 @@ def distractor_meshes(rng: np.random.Generator, n: int = 12) -> list[trimesh.Tri
     return out
 
 
+def texture_from_photos(meshes: list[trimesh.Trimesh], photos: list[np.ndarray], rng: np.random.Generator) -> None:
+    """Replace each mesh's vertex colours by a patch of a photo projected along a random axis,
+    brightened towards white: printed boxes, mugs, cables and books rather than flat primitives.
+    ``tint_distractors`` then colours them per image."""
+    for m in meshes:
+        photo = photos[int(rng.integers(len(photos)))]
+        h, w = photo.shape[:2]
+        side = int(rng.integers(48, max(49, min(h, w, 320))))
+        y0, x0 = int(rng.integers(0, h - side + 1)), int(rng.integers(0, w - side + 1))
+        patch = photo[y0:y0 + side, x0:x0 + side].astype(np.float32)
+        axes = np.linalg.qr(rng.normal(size=(3, 3)))[0][:, :2]
+        uv = np.asarray(m.vertices) @ axes
+        uv = (uv - uv.min(0)) / max(float(np.ptp(uv, axis=0).max()), 1e-6) * (side - 1)
+        cols = patch[uv[:, 1].astype(int), uv[:, 0].astype(int)]
+        cols = 255 - (255 - cols) * rng.uniform(0.3, 0.8)  # lighter: the tint sets the colour
+        rgba = np.concatenate([np.clip(cols, 0, 255), np.full((len(cols), 1), 255)], 1).astype(np.uint8)
+        m.visual = trimesh.visual.ColorVisuals(m, vertex_colors=rgba)
+
+
+def target_palette(meshes: list[trimesh.Trimesh], rng: np.random.Generator, per_mesh: int = 16) -> np.ndarray:
+    """(N, 3) sRGB colours in [0, 1] drawn from the targets' vertex colours: distractors tinted
+    with them (a yellow cup, a white box, a blue mug) teach the detector that colour alone is
+    not an object."""
+    out = []
+    for m in meshes:
+        vc = np.asarray(getattr(m.visual, "vertex_colors", np.zeros((0, 4))))[:, :3]
+        if len(vc):
+            out.append(vc[rng.integers(0, len(vc), per_mesh)] / 255.0)
+    return np.concatenate(out) if out else np.ones((1, 3))
+
+
+def tint_distractors(renderer, dis_ids, palette: np.ndarray, rng: np.random.Generator,
+                     p_palette: float = 0.5) -> None:
+    """A base colour per distractor mesh for the next renders: a target's colour (with p_palette),
+    else a random one; glossy now and then."""
+    for did in dis_ids:
+        if rng.random() < p_palette:
+            c = np.clip(palette[int(rng.integers(len(palette)))] + rng.normal(0, 0.06, 3), 0, 1)
+        else:
+            c = rng.uniform(0, 1, 3)
+        lin = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)  # render.py's vertex colours are linear
+        glossy = rng.random() < 0.3
+        renderer.set_material(did, metallic=rng.uniform(0, 0.3) if glossy else 0.0,
+                              roughness=rng.uniform(0.2, 0.6) if glossy else 0.8, colour=lin)
+
+
 # --------------------------------------------------------------------------- lights
 
 
