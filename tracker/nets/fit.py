@@ -109,7 +109,7 @@ def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, ou
             log(f"started from the weights of {source} (epoch {st['epoch']}, {st['spent'] / 60:.1f} min there); "
                 f"new budget, history and best validation L2")
     if ckpt.is_file() and init_from:
-        log(f"--init-from ignored: resuming this run's own checkpoint")
+        log("--init-from ignored: resuming this run's own checkpoint")
     variational = model.encoder.variational
     cond = model.n_cond > 0
     n = len(x_tr)
