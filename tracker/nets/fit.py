@@ -99,7 +99,7 @@ def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, ou
         except (RuntimeError, KeyError, ValueError, TypeError, EOFError, pickle.UnpicklingError) as e:
             hint = (f"delete {Path(out_dir)} to start afresh, or train into another --out" if source == ckpt
                     else "--init-from must come from a run with the same --method, --encoder, --size, --latent and objects")
-            raise UserError(f"{source} is not a checkpoint of this network ({type(e).__name__}): {hint}") from None
+            raise UserError(f"{source} is the checkpoint of another network ({type(e).__name__}): {hint}") from None
         g.set_state(st["gen"])
         if source == ckpt:
             start_epoch, best, since_best, hist, spent = st["epoch"] + 1, st["best"], st["since_best"], st["hist"], st["spent"]
