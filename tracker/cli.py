@@ -154,7 +154,7 @@ def cmd_train_detector(args) -> int:
     from .detector_train import train_detector
     d = train_detector(args.data, args.model, minutes=args.minutes, width=args.width, input_w=args.input[0],
                        input_h=args.input[1], batch=args.batch, seed=args.seed, max_images=args.max_images,
-                       init_from=args.init_from, command="app.py " + " ".join(sys.argv[1:]))
+                       lr=args.lr, init_from=args.init_from, command="app.py " + " ".join(sys.argv[1:]))
     v = d["training"]["validation_synthetic"]
     from .report import fmt_num
     print(f"detector added to {args.model}: synthetic validation AP {fmt_num(v['ap'])}, AP50 {fmt_num(v['ap50'])}")
@@ -453,6 +453,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--width", type=positive_int, default=32, help="base channel width of the network")
     s.add_argument("--input", type=positive_int, nargs=2, default=(320, 240), metavar=("W", "H"), help="network input size")
     s.add_argument("--batch", type=positive_int, default=32)
+    s.add_argument("--lr", type=positive_float, default=2e-3, help="peak learning rate (lower to fine-tune)")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--max-images", type=positive_int, default=None, help="use only the first N images")
     s.add_argument("--init-from", metavar="CKPT",
