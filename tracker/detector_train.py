@@ -185,7 +185,7 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     ckpt = work / f"detector_ckpt_{key}.pt"
     state = {"step": 0, "seconds": 0.0, "history": []}
     if ckpt.is_file():
-        z = torch.load(ckpt, weights_only=False)
+        z = torch.load(ckpt, weights_only=True)  # tensors and plain containers only: no code runs
         if z.get("width") == width and z.get("classes") == spec.classes:
             model.load_state_dict(z["model"])
             opt.load_state_dict(z["opt"])

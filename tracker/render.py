@@ -68,6 +68,11 @@ def pose_matrix(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return T
 
 
+def srgb_to_linear(c: np.ndarray) -> np.ndarray:
+    """sRGB values in [0, 1] -> linear light (the colours pyrender shades with)."""
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+
+
 def _to_pyrender(pr, mesh):
     """A pyrender mesh whose vertex colours are linear.
 
@@ -80,7 +85,7 @@ def _to_pyrender(pr, mesh):
     if getattr(visual, "kind", None) != "vertex":
         return pr.Mesh.from_trimesh(mesh, smooth=True)
     srgb = np.asarray(visual.vertex_colors, dtype=np.float32)[:, :3] / 255.0
-    linear = np.where(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4)
+    linear = srgb_to_linear(srgb)
     colours = np.concatenate([linear, np.ones((len(linear), 1), np.float32)], axis=1)
     material = pr.MetallicRoughnessMaterial(baseColorFactor=np.ones(4), metallicFactor=METALLIC, roughnessFactor=ROUGHNESS)
     prim = pr.Primitive(positions=np.asarray(mesh.vertices, dtype=np.float32),

@@ -37,10 +37,10 @@ def join_splits(out_dir, splits, command: str | None = None) -> dict:
         if differ:
             raise UserError(f"{s} and {splits[0]} differ in {', '.join(differ)}: they cannot train one bundle")
     scenes = [d.resolve() for s in splits for d in split_scene_dirs(s)]
-    for d in scenes:  # every scene must load (annotations readable, an image for each), before linking any
-        load_scene(d, require_gt=True)
     if out.exists() and any(out.iterdir()):
         raise UserError(f"{out} exists and is not empty; choose a new folder")
+    for d in scenes:  # every scene must load (annotations readable, an image for each), before linking any
+        load_scene(d, require_gt=True)
     out.mkdir(parents=True, exist_ok=True)
     for i, d in enumerate(scenes):
         (out / f"{i:06d}").symlink_to(d, target_is_directory=True)

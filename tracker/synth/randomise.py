@@ -12,6 +12,7 @@ import trimesh
 
 from ..errors import UserError
 from ..geometry import project
+from ..render import srgb_to_linear
 
 BG_EXTS = (".jpg", ".jpeg", ".png")
 
@@ -217,7 +218,7 @@ def tint_distractors(renderer, dis_ids, palette: np.ndarray, rng: np.random.Gene
             c = np.clip(palette[int(rng.integers(len(palette)))] + rng.normal(0, 0.06, 3), 0, 1)
         else:
             c = rng.uniform(0, 1, 3)
-        lin = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)  # render.py's vertex colours are linear
+        lin = srgb_to_linear(c)  # the renderer's vertex colours are linear too
         glossy = rng.random() < 0.3
         renderer.set_material(did, metallic=rng.uniform(0, 0.3) if glossy else 0.0,
                               roughness=rng.uniform(0.2, 0.6) if glossy else 0.8, colour=lin)
