@@ -218,6 +218,17 @@ def test_report_on_a_tiny_bundle(tiny_bundle, tmp_path):
     assert (tmp_path / "rep" / "eval_gt_aae.json").is_file()
 
 
+def test_crop_caches_are_named_for_their_split(tmp_path, monkeypatch):
+    from tracker.crops import crops_cache_path
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    monkeypatch.chdir(tmp_path)
+    a = crops_cache_path("w", tmp_path / "a", 64, 0)
+    assert crops_cache_path("w", "a", 64, 0) == a  # the same folder however it is spelt
+    assert crops_cache_path("w", tmp_path / "b", 64, 0) != a  # retrained on other data: not the old crops
+    assert crops_cache_path("w", "a", 64, 0, jitter=False) != a != crops_cache_path("w", "a", 64, 1)
+
+
 def test_distance_knn_equals_scikit_learns_brute_force():
     from sklearn.neighbors import KNeighborsRegressor
 
@@ -301,6 +312,95 @@ def test_pose_head_turns_ray_frame_rotations_into_the_camera_frame():
     del head.__dict__["rotation_frame"]
     R_old, t_old = head.predict(np.zeros((3, 4)), [1, 1, 1], boxes, K)
     assert np.allclose(R_old, R_a) and np.allclose(t_old, t)
+
+
+class _Recording(_Const):
+    def predict(self, X):
+        self.X = np.array(X)
+        return super().predict(X)[:, 0]
+
+
+def test_distance_from_rotation_is_averaged_with_the_latent_distance_in_log_space():
+    from scipy.spatial.transform import Rotation
+
+    from tracker.geometry import rot6d_from_matrix
+    from tracker.regressors import PoseHead, apparent_size
+    K = np.array([[572.4, 0, 325.3], [0, 573.6, 242.0], [0, 0, 1]])
+    R_a = Rotation.from_euler("xyz", [20, -35, 110], degrees=True).as_matrix()
+    boxes = np.array([[300.0, 220, 50, 45], [10, 15, 60, 60]])
+    latent, by_rotation = 50.0, 200.0  # Tz * sqrt(w' h') from each head (mm)
+    by_r = _Recording([np.log(by_rotation)])
+    head = PoseHead([3, 7], _Const(R_a), _Const([0.0, 0.0]), _Const([np.log(latent)]), rotation_frame="ray",
+                    distance_by_rotation=by_r)
+    _, t = head.predict(np.zeros((2, 4)), [7, 3], boxes, K)
+    assert np.allclose(t[:, 2], np.sqrt(latent * by_rotation) / apparent_size(boxes, K))  # geometric mean
+    # the second head sees the estimated ray-frame rotation (6D), the object one-hot and the log box size
+    assert np.allclose(by_r.X[:, :6], rot6d_from_matrix(R_a)[None].repeat(2, 0), atol=1e-6)
+    assert np.array_equal(by_r.X[:, 6:8], [[0, 1], [1, 0]])
+    assert by_r.X.shape == (2, 10)
+    # without it (and in heads pickled before they existed) the latent head alone gives Tz
+    del head.__dict__["distance_by_rotation"]
+    assert np.allclose(head.predict(np.zeros((2, 4)), [7, 3], boxes, K)[1][:, 2], latent / apparent_size(boxes, K))
+    with pytest.raises(ValueError, match="ray-frame"):
+        PoseHead([1], None, None, None, rotation_frame="camera", distance_by_rotation=by_r)
+
+
+def test_boosted_trees_predict_as_scikit_learn_does():
+    from sklearn.ensemble import HistGradientBoostingRegressor
+
+    from tracker.regressors import BoostedTrees
+    rng = np.random.default_rng(0)
+    X = rng.normal(size=(2000, 6))
+    y = np.sin(2 * X[:, 0]) + X[:, 1] * X[:, 2] + 0.1 * rng.normal(size=2000)
+    ours = BoostedTrees(max_iter=60, seed=3).fit(X, y)
+    ref = HistGradientBoostingRegressor(loss="absolute_error", max_iter=60, learning_rate=0.1, max_leaf_nodes=63,
+                                        early_stopping=False, random_state=3).fit(X, y)
+    Xt = rng.normal(size=(300, 6)) * 2
+    Xt[:5, 1] = np.nan  # missing values take the side the trees learnt
+    assert np.allclose(ours.predict(Xt), ref.predict(Xt), atol=1e-9)
+    assert np.abs(ours.predict(Xt) - y.mean()).max() > 0.5  # it learnt something
+    assert ours.predict(Xt[:1]).shape == (1,)
+
+
+def test_distance_from_rotation_is_kept_only_when_it_helps_on_validation():
+    from tracker.geometry import project
+    from tracker.regressors import apparent_size
+    from tracker.train import choose_distance_by_rotation
+    from scipy.spatial.transform import Rotation
+    rng = np.random.default_rng(0)
+    n = 600
+    R = Rotation.random(n, random_state=1).as_matrix()
+    K = np.broadcast_to(np.array([[600.0, 0, 320], [0, 600, 240], [0, 0, 1]]), (n, 3, 3))
+    t = np.c_[rng.uniform(-50, 50, (n, 2)), rng.uniform(600, 1200, n)]
+    centres = np.stack([project(np.zeros((1, 3)), k, None, tt)[0] for k, tt in zip(K, t)])
+    # a box whose size depends on the rotation: Tz * size is a function of R (what the trees learn)
+    s = 80 * (1 + 0.3 * R[:, 2, 0]) * 900 / t[:, 2]
+    boxes = np.c_[centres - s[:, None] / 2, s, s]
+    y = np.log(t[:, 2] * apparent_size(boxes, K))
+    idx = np.zeros(n, int)
+    tr, va = np.arange(500), np.arange(500, n)
+    args = (R[tr], idx[tr], 1, boxes[tr], K[tr], y[tr], R[va], idx[va], boxes[va], K[va])
+    rest = (apparent_size(boxes[va], K[va]), centres[va], t[va])
+    noisy = y[va] + rng.normal(0, 0.3, len(va))  # a poor latent head: the average helps
+    trees, info = choose_distance_by_rotation(*args, noisy, *rest, log=lambda *a: None)
+    assert trees is not None and info["used"] and info["val_te_median_mm_averaged"] < info["val_te_median_mm_latent"], info
+    trees, info = choose_distance_by_rotation(*args, y[va], *rest, log=lambda *a: None)  # a perfect one
+    assert trees is None and not info["used"]
+
+
+def test_refit_heads_can_keep_the_regressors_and_add_the_distance_from_rotation(tiny_bundle, tmp_path):
+    import pickle
+
+    from tracker.train import refit_heads
+    m = refit_heads(tiny_bundle, tiny_bundle.parent / "split", out_dir=tmp_path / "kept", keep_regressors=True,
+                    log=lambda *a: None)
+    assert m["heads"]["kept_regressors"] and set(m["heads"]["distance_by_rotation"]) >= {"used"}
+    src, kept = PoseEstimator(tiny_bundle), PoseEstimator(tmp_path / "kept")
+    for name in ("rotation", "centre", "distance"):  # the very same regressors
+        a, b = getattr(src.head, name), getattr(kept.head, name)
+        assert type(a) is type(b) and pickle.dumps(a, protocol=4) == pickle.dumps(b, protocol=4)
+    assert (kept.head.distance_by_rotation is not None) == m["heads"]["distance_by_rotation"]["used"]
+    assert len(list((tiny_bundle.parent / "lmo.work").glob("codes_*.npy"))) == 2  # cached for the next refit
 
 
 def test_refit_heads_keeps_the_encoder_and_writes_a_verified_bundle(tiny_bundle, tmp_path):

@@ -145,7 +145,7 @@ def cmd_train(args) -> int:
 def cmd_refit_heads(args) -> int:
     from .train import refit_heads
     m = refit_heads(args.model, args.data, out_dir=args.out, seed=args.seed, reg_minutes=args.reg_minutes,
-                    command="app.py " + " ".join(sys.argv[1:]))
+                    keep_regressors=args.keep_regressors, command="app.py " + " ".join(sys.argv[1:]))
     _print_validation(args.out or args.model, m)
     return 0
 
@@ -443,6 +443,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--data", required=True, help="the 'synth' split to fit on (the bundle's own, normally)")
     s.add_argument("--out", help="write the refitted bundle here (default: in place)")
     s.add_argument("--reg-minutes", type=positive_float, default=5.0, help="time budget per MLP regressor")
+    s.add_argument("--keep-regressors", action="store_true",
+                   help="keep the rotation, centre and distance regressors; fit only the distance-from-rotation "
+                        "trees and the codebook")
     s.add_argument("--seed", type=int, default=0)
     s.set_defaults(func=cmd_refit_heads)
 

@@ -8,6 +8,7 @@ stored clean render with the very same window.
 """
 from __future__ import annotations
 
+import hashlib
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -140,9 +141,12 @@ def build_training_crops(split_dir, size: int, seed: int = 0, jitter: bool = Tru
                    np.stack(cols["t"]), np.stack(cols["box"]), np.stack(cols["K"]), np.array(cols["visib"]))
 
 
-def crops_cache_path(work_dir, size: int, seed: int, max_images: int | None = None, jitter: bool = True) -> Path:
-    """Where training caches the crops of its split (``<bundle>.work/``)."""
-    return Path(work_dir) / f"crops_{size}_seed{seed}_{max_images or 'all'}{'' if jitter else '_exact'}.npz"
+def crops_cache_path(work_dir, data_dir, size: int, seed: int, max_images: int | None = None,
+                     jitter: bool = True) -> Path:
+    """Where training caches the crops of its split (``<bundle>.work/``), named for the split's
+    folder too, so that a bundle retrained on other data never loads the old crops."""
+    key = hashlib.sha1(str(Path(data_dir).resolve()).encode()).hexdigest()[:10]
+    return Path(work_dir) / f"crops_{size}_seed{seed}_{max_images or 'all'}{'' if jitter else '_exact'}_{key}.npz"
 
 
 def bundle_training_crops(model_dir, manifest: dict, data_dir, seed: int = 0, jitter: bool = True,
@@ -151,7 +155,8 @@ def bundle_training_crops(model_dir, manifest: dict, data_dir, seed: int = 0, ji
     bundle was trained on this very split, else cut now (same seed, same boxes). Objects the
     bundle does not know are an error. ``jitter=False``: on the exact visible boxes."""
     size = int(manifest["input_size"])
-    cache = crops_cache_path(Path(model_dir).parent / (Path(model_dir).name + ".work"), size, seed, jitter=jitter)
+    cache = crops_cache_path(Path(model_dir).parent / (Path(model_dir).name + ".work"), data_dir, size, seed,
+                             jitter=jitter)
     trained_on = manifest.get("training", {}).get("data")
     kind = "jittered" if jitter else "exact"
     if trained_on is not None and Path(trained_on).resolve() == Path(data_dir).resolve() and cache.is_file():

@@ -8,7 +8,12 @@ Features are camera-independent (see :func:`tracker.geometry.box_features`):
 - distance: ``[mu, onehot, log w', log h']`` -> ``log(Tz * sqrt(w' h'))`` (the object's apparent
   size times its distance, about constant per view): k-nearest-neighbours, distance
   weighted, k and the weight of the box features chosen on validation, or an MLP where it
-  does better on validation (``tracker.train.choose_distance``).
+  does better on validation (``tracker.train.choose_distance``);
+- distance from rotation (optional, :func:`distance_by_rotation_inputs`): ``[6D of the
+  ray-frame rotation, onehot, log w', log h']`` -> the same target, gradient-boosted trees
+  (:class:`BoostedTrees`) fitted on the true rotations and fed the rotation regressor's
+  estimate; its log-distance is averaged with the latent one. For an unoccluded object the apparent size at unit distance
+  is a function of its rotation, which the latent code carries only implicitly.
 """
 from __future__ import annotations
 
@@ -18,7 +23,8 @@ from sklearn.base import BaseEstimator, RegressorMixin
 from sklearn.preprocessing import StandardScaler
 
 from .errors import UserError
-from .geometry import box_features, centre_from_box_offset, matrix_from_rot6d, ray_rotation, translation_from_centre
+from .geometry import (box_features, centre_from_box_offset, matrix_from_rot6d, ray_rotation, rot6d_from_matrix,
+                       translation_from_centre)
 
 
 def _silu(x):
@@ -171,6 +177,56 @@ class DistanceKNN(BaseEstimator, RegressorMixin):
         return out[:, 0] if self.y_.shape[1] == 1 else out
 
 
+class BoostedTrees(BaseEstimator, RegressorMixin):
+    """scikit-learn's ``HistGradientBoostingRegressor`` (L1 loss), kept as flat arrays and
+    predicted with vectorised numpy: the library's own predict costs 20-40 ms per call whatever
+    the batch (measured here, 300 trees), over the per-object budget; this walks every tree at
+    once, one level per step. Numerical features only; NaN follows the trees' missing-value side."""
+
+    def __init__(self, max_iter=300, learning_rate=0.1, max_leaf_nodes=63, seed=0):
+        self.max_iter, self.learning_rate, self.max_leaf_nodes, self.seed = max_iter, learning_rate, max_leaf_nodes, seed
+
+    def fit(self, X, y):
+        from sklearn.ensemble import HistGradientBoostingRegressor
+        hgb = HistGradientBoostingRegressor(loss="absolute_error", max_iter=self.max_iter,
+                                            learning_rate=self.learning_rate, max_leaf_nodes=self.max_leaf_nodes,
+                                            early_stopping=False, random_state=self.seed).fit(X, y)
+        return self.take_trees(hgb)
+
+    def take_trees(self, hgb):
+        """Copy a fitted ``HistGradientBoostingRegressor``'s trees (scikit-learn 1.9's layout)."""
+        trees = [p.nodes for (p,) in hgb._predictors]
+        if any(t["is_categorical"].any() for t in trees):
+            raise ValueError("categorical splits are not supported")
+        offsets = np.cumsum([0] + [len(t) for t in trees[:-1]])
+        nodes = np.concatenate(trees)
+        shift = np.repeat(offsets, [len(t) for t in trees])
+        self.roots_ = offsets.astype(np.int64)
+        self.feature_ = nodes["feature_idx"].astype(np.int64)
+        self.threshold_ = nodes["num_threshold"].astype(np.float64)
+        self.missing_left_ = nodes["missing_go_to_left"].astype(bool)
+        self.leaf_ = nodes["is_leaf"].astype(bool)
+        self.left_ = np.where(self.leaf_, np.arange(len(nodes)), nodes["left"] + shift).astype(np.int64)
+        self.right_ = np.where(self.leaf_, np.arange(len(nodes)), nodes["right"] + shift).astype(np.int64)
+        self.value_ = nodes["value"].astype(np.float64)
+        self.depth_ = int(nodes["depth"].max())
+        self.baseline_ = float(np.ravel(hgb._baseline_prediction)[0])
+        self.n_features_in_ = hgb.n_features_in_
+        return self
+
+    def predict(self, X):
+        X = np.asarray(X, dtype=np.float64)
+        node = np.broadcast_to(self.roots_, (len(X), len(self.roots_))).copy()
+        rows = np.arange(len(X))[:, None]
+        for _ in range(self.depth_):
+            if self.leaf_[node].all():
+                break
+            x = X[rows, self.feature_[node]]
+            left = (x <= self.threshold_[node]) | (np.isnan(x) & self.missing_left_[node])
+            node = np.where(left, self.left_[node], self.right_[node])  # leaves point at themselves
+        return self.value_[node].sum(axis=1) + self.baseline_
+
+
 class Codebook(BaseEstimator):
     """AAE's lookup table (Sundermeyer et al.): L2-normalised latent codes of training views
     per object; cosine nearest neighbour gives the rotation, and the view's distance times
@@ -217,6 +273,14 @@ def distance_inputs(mu, obj_idx, n_obj, boxes, K) -> np.ndarray:
     return np.hstack([rotation_inputs(mu, obj_idx, n_obj), np.log(bf[:, 2:4])]).astype(np.float32)
 
 
+def distance_by_rotation_inputs(R_ray, obj_idx, n_obj, boxes, K) -> np.ndarray:
+    """``[6D of the ray-frame rotation, onehot, log w', log h']``."""
+    R_ray = np.asarray(R_ray, dtype=np.float64).reshape(-1, 3, 3)
+    bf = box_features(boxes, K)
+    return np.hstack([rot6d_from_matrix(R_ray).reshape(len(R_ray), 6), onehot(obj_idx, n_obj),
+                      np.log(bf[:, 2:4])]).astype(np.float32)
+
+
 def apparent_size(boxes, K) -> np.ndarray:
     """sqrt(w' h'): the box's size over the focal length (camera-independent)."""
     bf = box_features(boxes, K)
@@ -234,14 +298,19 @@ class PoseHead:
     turned back into the camera frame through the estimated centre; 'camera' (bundles made
     before it existed) when they predict the camera-frame rotation directly."""
 
-    rotation_frame = "camera"  # the default of heads pickled without the attribute
+    rotation_frame = "camera"  # the defaults of heads pickled without the attributes
+    distance_by_rotation = None
 
-    def __init__(self, obj_ids, rotation, centre, distance, codebook=None, rotation_frame="ray"):
+    def __init__(self, obj_ids, rotation, centre, distance, codebook=None, rotation_frame="ray",
+                 distance_by_rotation=None):
         self.obj_ids = [int(o) for o in obj_ids]
         self.rotation, self.centre, self.distance, self.codebook = rotation, centre, distance, codebook
         if rotation_frame not in ("ray", "camera"):
             raise ValueError(f"rotation_frame must be 'ray' or 'camera', not {rotation_frame!r}")
+        if distance_by_rotation is not None and rotation_frame != "ray":
+            raise ValueError("distance_by_rotation needs ray-frame rotations")
         self.rotation_frame = rotation_frame
+        self.distance_by_rotation = distance_by_rotation
 
     def index(self, obj_ids) -> np.ndarray:
         lut = {o: i for i, o in enumerate(self.obj_ids)}
@@ -263,7 +332,11 @@ class PoseHead:
         else:
             R = self.rotation.predict(rotation_inputs(mu, idx, n))
             offset = self.centre.predict(centre_inputs(mu, idx, n, boxes, K))
-            tz = np.exp(np.ravel(self.distance.predict(distance_inputs(mu, idx, n, boxes, K)))) / size  # KNN: (N,), MLP: (N, 1)
+            log_tz_size = np.ravel(self.distance.predict(distance_inputs(mu, idx, n, boxes, K)))  # KNN: (N,), MLP: (N, 1)
+            if self.distance_by_rotation is not None:
+                by_r = np.ravel(self.distance_by_rotation.predict(distance_by_rotation_inputs(R, idx, n, boxes, K)))
+                log_tz_size = 0.5 * (log_tz_size + by_r)
+            tz = np.exp(log_tz_size) / size
         centre = centre_from_box_offset(boxes, offset)
         K = np.asarray(K, dtype=np.float64)
         if self.rotation_frame == "ray":
