@@ -12,8 +12,9 @@ Features are camera-independent (see :func:`tracker.geometry.box_features`):
 - distance from rotation (optional, :func:`distance_by_rotation_inputs`): ``[6D of the
   ray-frame rotation, onehot, log w', log h']`` -> the same target, gradient-boosted trees
   (:class:`BoostedTrees`) fitted on the true rotations and fed the rotation regressor's
-  estimate; its log-distance is averaged with the latent one. For an unoccluded object the apparent size at unit distance
-  is a function of its rotation, which the latent code carries only implicitly.
+  estimate; its log-distance is averaged with the latent one. For an unoccluded object the
+  apparent size at unit distance is a function of its rotation, which the latent code
+  carries only implicitly.
 """
 from __future__ import annotations
 

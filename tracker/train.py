@@ -365,8 +365,8 @@ def refit_heads(model_dir, data_dir, out_dir=None, seed: int = 0, reg_minutes: f
     """Refit a bundle's regressors and AAE codebook on its frozen encoder (ONNX), without
     retraining the autoencoder; writes the bundle to ``out_dir`` (default: in place).
     ``keep_regressors``: keep its rotation, centre and latent distance regressors and fit only
-    the distance-from-rotation trees and the codebook (for a ray-frame bundle made before that
-    MLP existed)."""
+    the distance-from-rotation trees and the codebook (for a ray-frame bundle made before the
+    trees existed)."""
     _torch()  # the MLPs train with torch
     from .bundle import read_verified_manifest, write_manifest
     from .crops import bundle_training_crops, crops_cache_path, train_val_split
@@ -377,8 +377,9 @@ def refit_heads(model_dir, data_dir, out_dir=None, seed: int = 0, reg_minutes: f
 
     def codes(crops, jitter: bool) -> np.ndarray:
         """The encoder's codes of ``crops``, cached per encoder (its hash) and split."""
-        name = crops_cache_path(work, data_dir, est.size, seed, jitter=jitter).stem
-        path = work / f"codes_{est.bundle.manifest['files'][est.bundle.manifest['artefacts']['encoder']]['sha256'][:10]}_{name}.npy"
+        m = est.bundle.manifest
+        encoder_sha = m["files"][m["artefacts"]["encoder"]]["sha256"][:10]
+        path = work / f"codes_{encoder_sha}_{crops_cache_path(work, data_dir, est.size, seed, jitter=jitter).stem}.npy"
         if path.is_file():
             mu = np.load(path, allow_pickle=False)
             if len(mu) == len(crops):
