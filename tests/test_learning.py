@@ -202,6 +202,8 @@ def test_ablate_tables_on_a_tiny_bundle(tiny_bundle, tmp_path):
         assert 0 <= r["add_recall_true_t"] <= 1 and 0 <= r["re_median_deg"] <= 180
     assert [r["method"] for r in res["table_4_2a"]] == ["MLP", "RF", "KNN", "box centre"]
     assert all(r["centre_err_mean_px"] >= 0 for r in res["table_4_2a"])
+    assert [r["method"] for r in res["table_4_2b"]] == ["MLP", "RF", "KNN", "trees on estimated rotation",
+                                                        "MLP + trees (log average)"]
     assert all(np.isfinite(r["tz_err_mean_mm"]) for r in res["table_4_2b"])
 
 
