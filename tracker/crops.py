@@ -20,6 +20,7 @@ from tqdm import tqdm
 from .bop import load_scene
 from .errors import UserError
 from .geometry import SquareCrop, crop_and_resize, project, ray_rotation, square_crop
+from .paths import work_dir
 
 MIN_VISIB = 0.1  # BOP: instances less visible than this are not used
 
@@ -155,8 +156,7 @@ def bundle_training_crops(model_dir, manifest: dict, data_dir, seed: int = 0, ji
     bundle was trained on this very split, else cut now (same seed, same boxes). Objects the
     bundle does not know are an error. ``jitter=False``: on the exact visible boxes."""
     size = int(manifest["input_size"])
-    cache = crops_cache_path(Path(model_dir).parent / (Path(model_dir).name + ".work"), data_dir, size, seed,
-                             jitter=jitter)
+    cache = crops_cache_path(work_dir(model_dir), data_dir, size, seed, jitter=jitter)
     trained_on = manifest.get("training", {}).get("data")
     kind = "jittered" if jitter else "exact"
     if trained_on is not None and Path(trained_on).resolve() == Path(data_dir).resolve() and cache.is_file():

@@ -24,6 +24,7 @@ from .bop import load_scene
 from .crops import split_scene_dirs, train_val_split
 from .detector import DetectorSpec, decode, letterbox, normalise
 from .errors import UserError
+from .paths import work_dir
 
 MIN_VISIB = 0.1
 
@@ -165,7 +166,7 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     torch.manual_seed(seed)
     spec = DetectorSpec(classes=[int(o["id"]) for o in bundle.objects], input_w=input_w, input_h=input_h)
     root = Path(bundle_dir)
-    work = root.parent / (root.name + ".work")
+    work = work_dir(root)
     work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     # caches and checkpoints are keyed by the data, the classes and the network's shape

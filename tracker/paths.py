@@ -18,6 +18,12 @@ def shared_data() -> Path:
 DEMO_RECORDING = REPO / "demo" / "lmo_dev"
 
 
+def work_dir(bundle_dir) -> Path:
+    """``<bundle>.work/`` beside a bundle: its training checkpoints and caches (never shipped)."""
+    b = Path(bundle_dir)
+    return b.parent / (b.name + ".work")
+
+
 def lmo_dev_scene() -> Path:
     return _must_exist(shared_data() / "lmo" / "dev")
 

@@ -17,6 +17,7 @@ from .errors import UserError
 from .geometry import (box_offset_of_centre, centre_from_box_offset, focal_mean, rotation_error_deg,
                        translation_from_centre)
 from .overlay import LMO_NAMES
+from .paths import work_dir
 from .regressors import (Codebook, DistanceKNN, NumpyMLP, PoseHead, apparent_size, centre_inputs,
                          distance_inputs, rotation_inputs)
 
@@ -242,7 +243,7 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
     if not cfg_path.is_file():
         raise UserError(f"{data_dir}: no synth_config.json; make training data with 'app.py synth'")
     synth = json.loads(cfg_path.read_text())
-    work = out.parent / (out.name + ".work")  # checkpoints and caches, outside the bundle
+    work = work_dir(out)  # checkpoints and caches, outside the bundle
     work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
 
@@ -373,7 +374,7 @@ def refit_heads(model_dir, data_dir, out_dir=None, seed: int = 0, reg_minutes: f
     from .estimator import PoseEstimator
     t0 = time.perf_counter()
     est = PoseEstimator(model_dir, threads=2, single_thread_math=False)
-    work = est.bundle.root.parent / (est.bundle.root.name + ".work")
+    work = work_dir(est.bundle.root)
 
     def codes(crops, jitter: bool) -> np.ndarray:
         """The encoder's codes of ``crops``, cached per encoder (its hash) and split."""
