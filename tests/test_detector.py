@@ -88,6 +88,24 @@ def test_ap_hand_cases():
     assert detection_ap(fp2, gt, [1], ignore=ign)["ap50"] == pytest.approx(2 / 3, abs=1e-9)
 
 
+def test_occlusion_pastes_clutter_and_drops_hidden_boxes():
+    torch = pytest.importorskip("torch")
+    from tracker.detector_train import occlude
+    x = torch.zeros(2, 3, 60, 80)
+    x[1] = 1.0  # the second item is the only source of clutter for the first
+    # class, x, y, w, h: a box over the whole image and a tiny one
+    boxes = [np.array([[0, 0, 0, 80, 60], [1, 10, 10, 2, 2]], np.float32), np.zeros((0, 5), np.float32)]
+    out, kept = occlude(x.clone(), boxes, np.random.default_rng(0), p=1.0)
+    pasted = out[0, 0] > 0.5
+    assert 0 < pasted.float().mean() < 0.5       # some clutter, never most of the image
+    assert torch.equal(out[1], x[1])             # its only source shows an object everywhere: no clutter
+    assert kept[0][0, 0] == 0                    # the big box is mostly visible: kept
+    hidden_small = bool(pasted[10:12, 10:12].float().mean() > 0.5)
+    assert (1 in kept[0][:, 0]) != hidden_small  # the tiny box survives exactly when not hidden
+    same, same_boxes = occlude(x.clone(), boxes, np.random.default_rng(0), p=0.0)
+    assert torch.equal(same, x) and same_boxes[0] is boxes[0]
+
+
 @pytest.fixture(scope="module")
 def tiny_detector_bundle(tiny_bundle, tmp_path_factory):
     from tracker.detector_train import train_detector

@@ -154,7 +154,7 @@ def cmd_train_detector(args) -> int:
     from .detector_train import train_detector
     d = train_detector(args.data, args.model, minutes=args.minutes, width=args.width, input_w=args.input[0],
                        input_h=args.input[1], batch=args.batch, seed=args.seed, max_images=args.max_images,
-                       lr=args.lr, init_from=args.init_from, command="app.py " + " ".join(sys.argv[1:]))
+                       lr=args.lr, init_from=args.init_from, occlusion=args.occlusion, command="app.py " + " ".join(sys.argv[1:]))
     v = d["training"]["validation_synthetic"]
     from .report import fmt_num
     print(f"detector added to {args.model}: synthetic validation AP {fmt_num(v['ap'])}, AP50 {fmt_num(v['ap50'])}")
@@ -323,6 +323,13 @@ positive_float = _number(float, 0.0, True, "a positive number")
 finite_float = _number(float, float("-inf"), True, "a number")
 
 
+def fraction(text: str) -> float:
+    v = _number(float, 0.0, False, "a number from 0 to 1")(text)
+    if v > 1:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a number from 0 to 1")
+    return v
+
+
 def jpeg_quality(text: str) -> int:
     q = _number(int, 1, False, "a JPEG quality from 1 to 100")(text)
     if q > 100:
@@ -461,6 +468,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--max-images", type=positive_int, default=None, help="use only the first N images")
     s.add_argument("--init-from", metavar="CKPT",
                    help="start from another run's detector_ckpt_*.pt (same width and classes), e.g. to fine-tune on new data")
+    s.add_argument("--occlusion", type=fraction, default=0.0, metavar="P",
+                   help="share of training images that get clutter pasted over them (occlusion augmentation)")
     s.set_defaults(func=cmd_train_detector)
 
     s = sub.add_parser("ablate", help="regressor ablations (thesis Tables 4.1, 4.2) on the synthetic validation split")

@@ -87,9 +87,44 @@ def draw_targets(boxes_list, n_classes: int, out_w: int, out_h: int, stride: int
     return hm, reg, mask
 
 
-def augment_batch(x, boxes_list, rng: np.random.Generator, torch):
+def occlude(x, boxes_list, rng: np.random.Generator, p: float, max_covered: float = 0.5):
+    """With probability ``p`` per batch item, paste 1-3 rectangles (8-30 % of the image's
+    width and height each) cut from another item of the batch where it shows none of its
+    objects (10 tries, else that rectangle is skipped), as clutter in front of the objects. A box more than ``max_covered`` hidden by them is dropped from the
+    targets; the others keep their boxes. ``x``: (B, 3, H, W) tensor, changed in place."""
+    B, _, H, W = x.shape
+    out = []
+    src = x.clone()
+    for i, b in enumerate(boxes_list):
+        if B < 2 or rng.random() >= p:
+            out.append(b)
+            continue
+        covered = np.zeros((H, W), bool)
+        for _ in range(rng.integers(1, 4)):
+            w, h = int(rng.uniform(0.08, 0.3) * W), int(rng.uniform(0.08, 0.3) * H)
+            x0, y0 = int(rng.integers(0, W - w + 1)), int(rng.integers(0, H - h + 1))
+            j = (i + int(rng.integers(1, B))) % B
+            for _ in range(10):  # a patch with none of the source's objects in it: no unlabelled targets
+                sx, sy = int(rng.integers(0, W - w + 1)), int(rng.integers(0, H - h + 1))
+                if not any(bx < sx + w and sx < bx + bw and by < sy + h and sy < by + bh
+                           for _, bx, by, bw, bh in boxes_list[j]):
+                    x[i, :, y0:y0 + h, x0:x0 + w] = src[j, :, sy:sy + h, sx:sx + w]
+                    covered[y0:y0 + h, x0:x0 + w] = True
+                    break
+        keep = []
+        for c, bx, by, bw, bh in b:
+            c0, r0 = int(max(bx, 0)), int(max(by, 0))
+            c1, r1 = int(min(np.ceil(bx + bw), W)), int(min(np.ceil(by + bh), H))
+            area = max(c1 - c0, 0) * max(r1 - r0, 0)
+            keep.append(area > 0 and covered[r0:r1, c0:c1].sum() <= max_covered * area)
+        out.append(b[np.asarray(keep, bool)] if len(b) else b)
+    return x, out
+
+
+def augment_batch(x, boxes_list, rng: np.random.Generator, torch, occlusion: float = 0.0):
     """Random zoom (0.6-1.6, log-uniform) and shift on the whole batch item (boxes follow),
-    then colour (brightness, contrast, saturation, per-channel gain), blur and noise.
+    then (with ``occlusion`` > 0) clutter pasted over it (``occlude``), then colour
+    (brightness, contrast, saturation, per-channel gain), blur and noise.
     ``x``: (B, 3, H, W) float in [0, 1]."""
     from torch.nn import functional as F
     B, _, H, W = x.shape
@@ -115,6 +150,8 @@ def augment_batch(x, boxes_list, rng: np.random.Generator, torch):
         keep = area >= 0.35 * np.maximum((x1 - x0) * (y1 - y0), 1e-6)
         b[:, 1:] = np.stack([cx0, cy0, cx1 - cx0, cy1 - cy0], 1)
         out_boxes.append(b[keep])
+    if occlusion > 0:
+        x, out_boxes = occlude(x, out_boxes, rng, occlusion)
     g = torch.from_numpy(rng.uniform(0.5, 1.5, (B, 1, 1, 1)).astype(np.float32))
     x = x * g                                                   # brightness
     m = x.mean(dim=(1, 2, 3), keepdim=True)
@@ -153,7 +190,7 @@ def _init_weights(torch, path, width: int, classes: list[int]) -> dict:
 
 def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32, input_w: int = 320,
                    input_h: int = 240, batch: int = 32, lr: float = 2e-3, seed: int = 0, max_images=None,
-                   val_parts: int = 20, threads: int = 2, init_from=None, log=print,
+                   val_parts: int = 20, threads: int = 2, init_from=None, occlusion: float = 0.0, log=print,
                    command: str | None = None) -> dict:
     from .train import _torch
     torch = _torch()
@@ -222,7 +259,7 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
             b_rng = np.random.default_rng([seed, state["step"]])
             idx = b_rng.choice(tr, batch, replace=False)
             x = torch.from_numpy(images[idx]).permute(0, 3, 1, 2).float().div_(255)
-            x, bl = augment_batch(x, [boxes[i] for i in idx], b_rng, torch)
+            x, bl = augment_batch(x, [boxes[i] for i in idx], b_rng, torch, occlusion)
             hm_t, reg_t, mask_t = (torch.from_numpy(a) for a in draw_targets(bl, C, ow, oh, S))
             hm, reg = model.forward_logits((x - spec.mean) / spec.std)
             l_hm = focal_loss(hm, hm_t)
@@ -273,7 +310,7 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     d = spec.to_dict()
     d["training"] = {"data": str(data_dir), "images": len(tr), "validation": len(va), "parameters": n_params,
                      "width": width, "steps": state["step"], "batch": batch, "lr": lr,
-                     "minutes": round(state["seconds"] / 60, 1), "seed": seed, "onnx_max_abs_diff": diff,
+                     "minutes": round(state["seconds"] / 60, 1), "seed": seed, "occlusion": occlusion, "onnx_max_abs_diff": diff,
                      "validation_synthetic": ap, "command": command or "app.py " + " ".join(sys.argv[1:]),
                      "loss_history": state["history"][-20:],
                      **({"init_from": state["init_from"]} if "init_from" in state else {})}
