@@ -165,6 +165,34 @@ def test_tiny_training_exports_and_loads(tiny_detector_bundle, lmo_dev):
         assert all(o.obj_id in spec["classes"] for o in det(small))
 
 
+def test_candidates_for_ap_extend_the_run_time_detections(tiny_detector_bundle, lmo_dev):
+    from tracker.bundle import open_bundle
+    from tracker.detector import CANDIDATE_PER_CLASS, CANDIDATE_SCORE, Detector
+    det = Detector(open_bundle(tiny_detector_bundle))
+    det.spec.score_thresh = 0.5  # a tiny network's scores are low: few or no run-time detections
+    frame = lmo_dev.read_rgb(lmo_dev.im_ids[0])
+    dets, cands = det.detect(frame, candidates=True)
+    assert [(d.obj_id, d.score) for d in dets] == [(d.obj_id, d.score) for d in det(frame)]
+    assert det.detect(frame)[1] == []
+    assert len(cands) > len(dets)
+    assert all(c.score >= CANDIDATE_SCORE for c in cands)
+    assert max(sum(c.obj_id == o for c in cands) for o in det.spec.classes) <= CANDIDATE_PER_CLASS
+    assert {(d.obj_id, d.score) for d in dets} <= {(c.obj_id, c.score) for c in cands}
+
+
+def test_eval_with_the_detector_reports_coco_ap_and_the_operating_point(tiny_detector_bundle, data_dir, tmp_path):
+    from tracker.evaluate import evaluate
+    m = evaluate(tiny_detector_bundle, data_dir / "lmo" / "dev", tmp_path / "m.json", boxes="detector",
+                 max_frames=2, progress=False)
+    d = json.loads((tmp_path / "m.json").read_text())["detection"]
+    assert d["ap50"] == m["detection"]["ap50"] and "coco" in d["protocol"]
+    op = d["operating_point"]
+    assert set(op["per_object"]) == set(d["per_object"])
+    # more candidates can only add recall
+    assert all(d["per_object"][k]["recall50"] >= op["per_object"][k]["recall50"]
+               for k in d["per_object"] if d["per_object"][k]["n_gt"])
+
+
 def test_detector_classes_must_match_bundle(tiny_detector_bundle, tmp_path):
     from tracker.bundle import open_bundle
     from tracker.detector import Detector

@@ -207,7 +207,10 @@ def cmd_eval(args) -> int:
               f"{fmt_num(v['re_median_deg'], 1):>6} {fmt_num(v['te_median_mm'], 1):>7}")
     d = m.get("detection")
     if d:
-        print(f"detector: AP {fmt_num(d['ap'])}, AP50 {fmt_num(d['ap50'])}, recall50 {fmt_num(d['recall50'])}, "
+        op = d.get("operating_point") or d
+        print(f"detector: AP {fmt_num(d['ap'])}, AP50 {fmt_num(d['ap50'])}, recall50 {fmt_num(d['recall50'])} "
+              f"(COCO: ranked candidates); as the loop runs it (one per object, manifest threshold): AP "
+              f"{fmt_num(op['ap'])}, AP50 {fmt_num(op['ap50'])}, recall50 {fmt_num(op['recall50'])}; "
               f"{d['ms_per_image_median']:.1f} ms/image (median)")
         print(f"{'obj':>5} {'AP':>6} {'AP50':>6} {'R50':>6}")
         for k, v in sorted(d["per_object"].items(), key=lambda kv: int(kv[0])):

@@ -9,7 +9,7 @@ and the sub-cell offset (x, y) of the centre in cells.
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import cv2
 import numpy as np
@@ -17,6 +17,12 @@ import numpy as np
 from .errors import UserError
 from .estimator import Detection
 from .geometry import clip_box, iou_matrix
+
+
+# the ranked list that detection AP is measured on (COCO's protocol), not what the live loop uses
+CANDIDATE_SCORE = 0.01
+CANDIDATE_PER_CLASS = 10
+CANDIDATE_MAX = 100
 
 
 @dataclass
@@ -165,9 +171,23 @@ class Detector:
         self.input_name = self.session.get_inputs()[0].name
 
     def __call__(self, image_rgb: np.ndarray) -> list[Detection]:
+        """The run-time detections: the manifest's threshold, at most ``max_per_class`` each."""
+        return self.detect(image_rgb)[0]
+
+    def detect(self, image_rgb: np.ndarray, candidates: bool = False) -> tuple[list[Detection], list[Detection]]:
+        """The run-time detections and (with ``candidates``) the ranked list that COCO's AP
+        is defined on: every peak scoring at least ``CANDIDATE_SCORE``, up to
+        ``CANDIDATE_PER_CLASS`` per object and ``CANDIDATE_MAX`` per image (pycocotools keeps
+        100 per image), from the same network pass."""
         h, w = image_rgb.shape[:2]
         img, lb = letterbox(image_rgb, self.spec.input_w, self.spec.input_h, self.spec.pad_value)
         maps = self.session.run(None, {self.input_name: normalise(img[None], self.spec)})[0][0]
         if not np.all(np.isfinite(maps)):
-            return []  # NaN output: no detections rather than garbage boxes
-        return decode(maps, self.spec, lb, (w, h))
+            return [], []  # NaN output: no detections rather than garbage boxes
+        dets = decode(maps, self.spec, lb, (w, h))
+        if not candidates:
+            return dets, []
+        wide = replace(self.spec, score_thresh=min(CANDIDATE_SCORE, self.spec.score_thresh),
+                       max_per_class=max(CANDIDATE_PER_CLASS, self.spec.max_per_class),
+                       max_dets=max(CANDIDATE_MAX, self.spec.max_dets))
+        return dets, decode(maps, wide, lb, (w, h))
