@@ -154,7 +154,8 @@ def cmd_train_detector(args) -> int:
     from .detector_train import train_detector
     d = train_detector(args.data, args.model, minutes=args.minutes, width=args.width, input_w=args.input[0],
                        input_h=args.input[1], batch=args.batch, seed=args.seed, max_images=args.max_images,
-                       lr=args.lr, init_from=args.init_from, occlusion=args.occlusion, command="app.py " + " ".join(sys.argv[1:]))
+                       lr=args.lr, init_from=args.init_from, occlusion=args.occlusion,
+                       command="app.py " + " ".join(sys.argv[1:]))
     v = d["training"]["validation_synthetic"]
     from .report import fmt_num
     print(f"detector added to {args.model}: synthetic validation AP {fmt_num(v['ap'])}, AP50 {fmt_num(v['ap50'])}")

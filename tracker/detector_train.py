@@ -90,8 +90,9 @@ def draw_targets(boxes_list, n_classes: int, out_w: int, out_h: int, stride: int
 def occlude(x, boxes_list, rng: np.random.Generator, p: float, max_covered: float = 0.5):
     """With probability ``p`` per batch item, paste 1-3 rectangles (8-30 % of the image's
     width and height each) cut from another item of the batch where it shows none of its
-    objects (10 tries, else that rectangle is skipped), as clutter in front of the objects. A box more than ``max_covered`` hidden by them is dropped from the
-    targets; the others keep their boxes. ``x``: (B, 3, H, W) tensor, changed in place."""
+    objects (10 tries, else that rectangle is skipped), as clutter in front of the objects. A
+    box more than ``max_covered`` hidden by them is dropped from the targets; the others keep
+    their boxes. ``x``: (B, 3, H, W) tensor, changed in place."""
     B, _, H, W = x.shape
     out = []
     src = x.clone()
@@ -310,7 +311,8 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     d = spec.to_dict()
     d["training"] = {"data": str(data_dir), "images": len(tr), "validation": len(va), "parameters": n_params,
                      "width": width, "steps": state["step"], "batch": batch, "lr": lr,
-                     "minutes": round(state["seconds"] / 60, 1), "seed": seed, "occlusion": occlusion, "onnx_max_abs_diff": diff,
+                     "minutes": round(state["seconds"] / 60, 1), "seed": seed, "occlusion": occlusion,
+                     "onnx_max_abs_diff": diff,
                      "validation_synthetic": ap, "command": command or "app.py " + " ".join(sys.argv[1:]),
                      "loss_history": state["history"][-20:],
                      **({"init_from": state["init_from"]} if "init_from" in state else {})}

@@ -98,7 +98,9 @@ def evaluate(model_dir, scene_dir, json_path=None, boxes: str = "gt", mode: str 
         # AP as COCO defines it (the ranked candidates); the run-time detections (the manifest's
         # threshold, one per object) alongside, as the operating point the poses were made from
         m["detection"] = detection_ap(all_candidates, gts, est.obj_ids, ignore=ign)
-        m["detection"]["protocol"] = "coco: candidates scoring >= 0.01, at most 10 per object and 100 per image"
+        from .detector import CANDIDATE_MAX, CANDIDATE_PER_CLASS, CANDIDATE_SCORE
+        m["detection"]["protocol"] = (f"coco: candidates scoring >= {CANDIDATE_SCORE}, at most {CANDIDATE_PER_CLASS} "
+                                      f"per object and {CANDIDATE_MAX} per image")
         m["detection"]["operating_point"] = detection_ap(all_dets, gts, est.obj_ids, ignore=ign)
         m["detection"]["ms_per_image_median"] = float(np.median(det_ms))
         m["detection"]["visibility_source"] = m.get("visibility_source")
