@@ -208,7 +208,7 @@ def cmd_eval(args) -> int:
               f"{fmt_num(v['re_median_deg'], 1):>6} {fmt_num(v['te_median_mm'], 1):>7}")
     d = m.get("detection")
     if d:
-        op = d.get("operating_point") or d
+        op = d["operating_point"]
         print(f"detector: AP {fmt_num(d['ap'])}, AP50 {fmt_num(d['ap50'])}, recall50 {fmt_num(d['recall50'])} "
               f"(COCO: ranked candidates); as the loop runs it (one per object, manifest threshold): AP "
               f"{fmt_num(op['ap'])}, AP50 {fmt_num(op['ap50'])}, recall50 {fmt_num(op['recall50'])}; "
