@@ -220,6 +220,23 @@ def test_report_on_a_tiny_bundle(tiny_bundle, tmp_path):
     assert (tmp_path / "rep" / "eval_gt_aae.json").is_file()
 
 
+def test_report_reuses_evaluations_only_of_the_same_bundle(tiny_bundle, tmp_path):
+    from tracker.report import build_report
+    from tracker.paths import DEMO_RECORDING
+    out = tmp_path / "rep"
+    build_report(tiny_bundle, DEMO_RECORDING, out, max_frames=1, log=lambda *a: None)
+    p = out / "eval_gt_regression.json"
+    m = json.loads(p.read_text())
+    m["marker"] = 1
+    p.write_text(json.dumps(m))
+    build_report(tiny_bundle, DEMO_RECORDING, out, reuse=True, max_frames=1, log=lambda *a: None)
+    assert json.loads(p.read_text())["marker"] == 1  # the same bundle: reused
+    m["bundle_manifest_sha256"] = "0" * 64           # made for the bundle as it was before a change
+    p.write_text(json.dumps(m))
+    build_report(tiny_bundle, DEMO_RECORDING, out, reuse=True, max_frames=1, log=lambda *a: None)
+    assert "marker" not in json.loads(p.read_text())  # evaluated again
+
+
 def test_crop_caches_are_named_for_their_split(tmp_path, monkeypatch):
     from tracker.crops import crops_cache_path
     (tmp_path / "a").mkdir()

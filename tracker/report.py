@@ -92,7 +92,7 @@ def build_report(model_dir, scene_dir, out_dir, ablate_json=None, reuse: bool = 
                  log=print) -> Path:
     from .bundle import open_bundle
     from .cvplot import Panel, Series, line_chart, save_png, scatter
-    from .evaluate import evaluate
+    from .evaluate import evaluate, manifest_sha256
     from .meshes import genus, load_mesh
     if scene_dir is None:
         from .paths import DEMO_RECORDING
@@ -105,6 +105,7 @@ def build_report(model_dir, scene_dir, out_dir, ablate_json=None, reuse: bool = 
     has_det = "detector" in bundle.manifest.get("artefacts", {})
     runs = [("gt", "regression"), ("gt", "aae")] + ([("detector", "regression"), ("detector", "aae")] if has_det else [])
     ev = {}
+    bundle_sha = manifest_sha256(bundle)  # a JSON made for the bundle before it changed is not reused
     for boxes, mode in runs:
         p = out / f"eval_{boxes}_{mode}.json"
         old = None
@@ -114,7 +115,7 @@ def build_report(model_dir, scene_dir, out_dir, ablate_json=None, reuse: bool = 
             except (json.JSONDecodeError, UnicodeDecodeError):
                 log(f"warning: {p} is unreadable; evaluating again")
         if old and old.get("data") == str(scene_dir) and old.get("model") == str(model_dir) \
-                and old.get("max_frames") == max_frames:
+                and old.get("max_frames") == max_frames and old.get("bundle_manifest_sha256") == bundle_sha:
             ev[boxes, mode] = old
         else:
             log(f"evaluating: {boxes} boxes, {mode}")
@@ -142,7 +143,7 @@ def build_report(model_dir, scene_dir, out_dir, ablate_json=None, reuse: bool = 
                _pose_row("our detector", d, f"ADD(I) {THESIS['table_5_7']['detector']['add_recall']:.3f} (Mask R-CNN)"),
                _pose_row("our detector, AAE", ev["detector", "aae"], "AR_MSPD 0.254 (Table 5.3)"), ""]
         det = d["detection"]
-        op = det.get("operating_point") or det
+        op = det["operating_point"]  # reused JSONs are of this bundle, made with it
         md += [f"Detector on these frames (COCO's protocol, ranked candidates): AP {fmt_num(det['ap'])}, AP50 "
                f"{fmt_num(det['ap50'])}, recall at IoU 0.5 {fmt_num(det['recall50'])}; the detections the poses "
                f"use (one per object above the manifest's threshold): AP {fmt_num(op['ap'])}, AP50 "
