@@ -93,6 +93,11 @@ class Bundle:
     def objects(self) -> list[dict]:
         return self.manifest["objects"]
 
+    @property
+    def manifest_sha256(self) -> str:
+        """The manifest's hash: it names every file's hash, so it stands for the whole bundle."""
+        return sha256(self.root / MANIFEST)
+
 
 def update_manifest(bundle_dir, change) -> dict:
     """Verify a bundle, let ``change(manifest)`` edit its manifest (files already written into

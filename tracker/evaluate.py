@@ -12,12 +12,6 @@ from .errors import UserError
 from .estimator import Detection, PoseEstimator
 
 
-def manifest_sha256(bundle) -> str:
-    """The bundle's manifest hash: it names every file's hash, so it stands for the whole bundle."""
-    from .bundle import sha256
-    return sha256(Path(bundle.root) / "manifest.json")
-
-
 def bop_csv_name(method: str, dataset: str = "lmo", split: str = "test") -> str:
     """BOP's rule for result files: METHOD_DATASET-SPLIT.csv (no '_' inside METHOD)."""
     return f"{method.replace('_', '-')}_{dataset}-{split}.csv"
@@ -110,8 +104,8 @@ def evaluate(model_dir, scene_dir, json_path=None, boxes: str = "gt", mode: str 
         m["detection"]["operating_point"] = detection_ap(all_dets, gts, est.obj_ids, ignore=ign)
         m["detection"]["ms_per_image_median"] = float(np.median(det_ms))
         m["detection"]["visibility_source"] = m.get("visibility_source")
-    m.update({"boxes": boxes, "mode": mode, "model": str(model_dir), "bundle_manifest_sha256": manifest_sha256(est.bundle),
-              "data": str(scene_dir), "max_frames": max_frames,
+    m.update({"boxes": boxes, "mode": mode, "model": str(model_dir),
+              "bundle_manifest_sha256": est.bundle.manifest_sha256, "data": str(scene_dir), "max_frames": max_frames,
               "bop_csv": str(bop_csv), "method": name})
     if json_path:
         write_metrics_json(json_path, m)

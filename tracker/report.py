@@ -92,7 +92,7 @@ def build_report(model_dir, scene_dir, out_dir, ablate_json=None, reuse: bool = 
                  log=print) -> Path:
     from .bundle import open_bundle
     from .cvplot import Panel, Series, line_chart, save_png, scatter
-    from .evaluate import evaluate, manifest_sha256
+    from .evaluate import evaluate
     from .meshes import genus, load_mesh
     if scene_dir is None:
         from .paths import DEMO_RECORDING
@@ -105,7 +105,7 @@ def build_report(model_dir, scene_dir, out_dir, ablate_json=None, reuse: bool = 
     has_det = "detector" in bundle.manifest.get("artefacts", {})
     runs = [("gt", "regression"), ("gt", "aae")] + ([("detector", "regression"), ("detector", "aae")] if has_det else [])
     ev = {}
-    bundle_sha = manifest_sha256(bundle)  # a JSON made for the bundle before it changed is not reused
+    bundle_sha = bundle.manifest_sha256  # a JSON made for the bundle before it changed is not reused
     for boxes, mode in runs:
         p = out / f"eval_{boxes}_{mode}.json"
         old = None
