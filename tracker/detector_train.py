@@ -192,16 +192,18 @@ def _init_weights(torch, path, width: int, classes: list[int]) -> dict:
 def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32, input_w: int = 320,
                    input_h: int = 240, batch: int = 32, lr: float = 2e-3, seed: int = 0, max_images=None,
                    val_parts: int = 20, threads: int = 2, init_from=None, occlusion: float = 0.0, log=print,
-                   command: str | None = None) -> dict:
+                   command: str | None = None, precision: str = "auto") -> dict:
     from .train import _torch
     torch = _torch()
     from .bundle import open_bundle, update_manifest
     from .detection_metrics import detection_ap
+    from .nets import precision as prec
     from .nets.detector import CenterNetLite, focal_loss
     from .report import fmt_num
     bundle = open_bundle(bundle_dir)  # verified before anything is changed
     torch.set_num_threads(threads)
     torch.manual_seed(seed)
+    precision = prec.resolve(precision)
     spec = DetectorSpec(classes=[int(o["id"]) for o in bundle.objects], input_w=input_w, input_h=input_h)
     root = Path(bundle_dir)
     work = work_dir(root)
@@ -241,7 +243,7 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
         log(f"started from the weights of {init_from}; new optimiser, schedule and budget")
     budget = 60.0 * minutes
     log(f"detector: {n_params / 1e6:.2f} M parameters, {len(tr)} train / {len(va)} validation images, "
-        f"{input_w}x{input_h} input, budget {minutes:.0f} min")
+        f"{input_w}x{input_h} input, budget {minutes:.0f} min, {precision} training passes")
     bar = tqdm(total=int(budget), initial=int(min(state["seconds"], budget)), unit="s", desc="detector")
     last_ckpt = time.perf_counter()
     run_start = time.perf_counter() - state["seconds"]
@@ -253,6 +255,7 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
 
     try:
         model.train()
+        prec.channels_last(model)
         while state["seconds"] < budget:
             frac = state["seconds"] / budget
             for gr in opt.param_groups:
@@ -262,7 +265,9 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
             x = torch.from_numpy(images[idx]).permute(0, 3, 1, 2).float().div_(255)
             x, bl = augment_batch(x, [boxes[i] for i in idx], b_rng, torch, occlusion)
             hm_t, reg_t, mask_t = (torch.from_numpy(a) for a in draw_targets(bl, C, ow, oh, S))
-            hm, reg = model.forward_logits((x - spec.mean) / spec.std)
+            with prec.autocast(precision):
+                hm, reg = model.forward_logits(prec.channels_last((x - spec.mean) / spec.std))
+            hm, reg = hm.float(), reg.float()
             l_hm = focal_loss(hm, hm_t)
             npos = mask_t.sum().clamp(min=1)
             l_size = (torch.abs(reg[:, :2] - reg_t[:, :2]) * mask_t).sum() / npos
@@ -289,6 +294,7 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     bar.close()
     save()
     model.eval()
+    model.to(memory_format=torch.contiguous_format)
 
     # validation on held-out synthetic images, through the run-time decoder
     dets, gts = [], []
@@ -312,6 +318,7 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     d["training"] = {"data": str(data_dir), "images": len(tr), "validation": len(va), "parameters": n_params,
                      "width": width, "steps": state["step"], "batch": batch, "lr": lr,
                      "minutes": round(state["seconds"] / 60, 1), "seed": seed, "occlusion": occlusion,
+                     "precision": precision,
                      "onnx_max_abs_diff": diff,
                      "validation_synthetic": ap, "command": command or "app.py " + " ".join(sys.argv[1:]),
                      "loss_history": state["history"][-20:],

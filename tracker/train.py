@@ -227,17 +227,20 @@ def export_encoder(model, size: int, n_cond: int, path: Path, x_check: np.ndarra
 def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent: int = 128,
                  minutes: float = 45.0, seed: int = 0, max_images: int | None = None,
                  models_info_path=None, codebook_per_object: int = 1500, reg_minutes: float = 5.0,
-                 log=print, command: str | None = None, encoder: str = "plain", init_from=None) -> dict:
+                 log=print, command: str | None = None, encoder: str = "plain", init_from=None,
+                 precision: str = "auto") -> dict:
     torch = _torch()
     from .crops import CropSet, build_training_crops, crops_cache_path, train_val_split
     from .meshes import load_models
     from .nets.autoencoder import ENCODERS, METHODS, AutoEncoder
     from .nets.fit import encode_all, onehot, to_tensor, train_autoencoder
+    from .nets.precision import resolve
     if method not in METHODS:
         raise UserError(f"unknown method '{method}' (choose from {', '.join(METHODS)})")
     if encoder not in ENCODERS:
         raise UserError(f"unknown encoder '{encoder}' (choose from {', '.join(ENCODERS)})")
     torch.set_num_threads(2)
+    precision = resolve(precision)
     data_dir, out = Path(data_dir), Path(out_dir)
     cfg_path = data_dir / "synth_config.json"
     if not cfg_path.is_file():
@@ -274,9 +277,9 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
     model = AutoEncoder(method, size, latent, n_obj, encoder=encoder)
     n_params = sum(p.numel() for p in model.parameters())
     log(f"{method}: {n_params / 1e6:.2f} M parameters, {len(tr)} train / {len(va)} validation crops, "
-        f"{n_obj} objects, budget {minutes:.0f} min")
+        f"{n_obj} objects, budget {minutes:.0f} min, {precision} training passes")
     hist = train_autoencoder(model, cs.x[tr], cs.y[tr], c_all[tr], cs.x[va], cs.y[va], c_all[va], work,
-                             minutes=minutes, seed=seed, init_from=init_from, log=log)
+                             minutes=minutes, seed=seed, init_from=init_from, precision=precision, log=log)
 
     cond = c_all if method == "cvam" else None
     mu = encode_all(model, cs.x, cond)
@@ -337,7 +340,7 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
                      "crops": len(cs), "train": len(tr), "validation": len(va), "ae_parameters": n_params,
                      "ae_epochs": len(hist["epoch"]), "ae_best_val_l2": float(min(hist["val_l2"])),
                      "ae_minutes": round(hist["seconds"][-1] / 60, 1) if hist["seconds"] else 0.0, "total_minutes": round((time.perf_counter() - t0) / 60, 1),
-                     "knn": dist_info["knn"], "seed": seed,
+                     "knn": dist_info["knn"], "seed": seed, "precision": precision,
                      **({"init_from": str(init_from)} if init_from else {}), "onnx_max_abs_diff": diff},
         "validation_synthetic": val,
         "heads": {"rotation_frame": head.rotation_frame, "distance": dist_info["head"],

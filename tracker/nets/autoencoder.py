@@ -131,9 +131,12 @@ class AutoEncoder(nn.Module):
 
 
 def loss_terms(recon, target, mu, logvar):
-    """Per-batch mean of: sum of squared pixel errors per image, and KL to N(0, I)."""
+    """Per-batch mean of: sum of squared pixel errors per image, and KL to N(0, I); float32
+    whatever the arithmetic of the forward pass."""
+    recon, mu = recon.float(), mu.float()
     l2 = ((recon - target) ** 2).flatten(1).sum(1).mean()
     if logvar is None:
         return l2, torch.zeros((), device=recon.device)
+    logvar = logvar.float()
     kl = (-0.5 * (1 + logvar - mu ** 2 - logvar.exp()).sum(1)).mean()
     return l2, kl

@@ -13,6 +13,7 @@ from torch.nn import functional as F
 from tqdm import tqdm
 
 from ..errors import UserError
+from . import precision as prec
 from .autoencoder import AutoEncoder, loss_terms
 
 KL_ALPHA = 0.1  # Table 4.6
@@ -74,11 +75,14 @@ def onehot(obj_idx: np.ndarray, n: int) -> torch.Tensor:
 
 def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, out_dir: Path,
                       minutes: float = 45.0, batch: int = 128, lr: float = 1e-3, patience: int = 50,
-                      seed: int = 0, init_from=None, log=print) -> dict:
-    """Train until the time budget, early stopping, or 1000 epochs. Resumes from
+                      seed: int = 0, init_from=None, precision: str = "fp32", max_epochs: int = 1000,
+                      log=print) -> dict:
+    """Train until the time budget, early stopping, or ``max_epochs``. Resumes from
     ``out_dir/ae_checkpoint.pt`` when it exists; otherwise ``init_from`` (another run's
     checkpoint) gives the starting weights and optimiser state, with a fresh budget, history
-    and best validation loss (the validation crops differ). Returns the training history."""
+    and best validation loss (the validation crops differ). ``precision`` ('bf16' or 'fp32',
+    see ``precision.resolve``) is the arithmetic of the training passes; validation is float32.
+    Returns the training history."""
     torch.manual_seed(seed)
     g = torch.Generator().manual_seed(seed)
     opt = torch.optim.AdamW(model.parameters(), lr=lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=1e-2)
@@ -112,25 +116,27 @@ def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, ou
         log("--init-from ignored: resuming this run's own checkpoint")
     variational = model.encoder.variational
     cond = model.n_cond > 0
+    prec.channels_last(model)
     n = len(x_tr)
     t_start = time.perf_counter() - spent
-    for epoch in range(start_epoch, 1000):
+    for epoch in range(start_epoch, max_epochs):
         model.train()
         perm = torch.randperm(n, generator=g).numpy()
         tot, cnt = 0.0, 0
         bar = tqdm(range(0, n, batch), desc=f"epoch {epoch}", unit="batch", leave=False)
         for i in bar:
             idx = np.sort(perm[i:i + batch])
-            xb = augment(to_tensor(x_tr[idx]), g)
+            xb = prec.channels_last(augment(to_tensor(x_tr[idx]), g))
             yb = to_tensor(y_tr[idx])
             cb = c_tr[idx] if cond else None
-            recon, mu, logvar = model(xb, cb)
+            with prec.autocast(precision):
+                recon, mu, logvar = model(xb, cb)
             l2, kl = loss_terms(recon, yb, mu, logvar)
             loss = l2 + (KL_ALPHA * kl if variational else 0.0)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
-            tot += float(l2) * len(idx)
+            tot += float(l2.detach()) * len(idx)
             cnt += len(idx)
             bar.set_postfix(l2=f"{tot / cnt:.1f}")
             if time.perf_counter() - t_start > minutes * 60:
@@ -154,6 +160,7 @@ def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, ou
         if since_best >= patience or spent > minutes * 60:
             break
     model.load_state_dict(torch.load(best_path, weights_only=True))
+    model.to(memory_format=torch.contiguous_format)
     return hist
 
 

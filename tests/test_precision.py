@@ -1,0 +1,43 @@
+"""The arithmetic of the training passes: bfloat16 where the CPU has it, float32 weights and
+losses either way, a float32 model for export."""
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from tracker.nets.autoencoder import AutoEncoder  # noqa: E402
+from tracker.nets.fit import onehot, train_autoencoder  # noqa: E402
+from tracker.nets.precision import native_bf16, resolve  # noqa: E402
+
+CPUINFO = "processor\t: 0\nflags\t\t: fpu sse2 avx2 avx512f {}\nbogomips\t: 4000\n"
+
+
+def test_native_bf16_is_read_from_the_cpu_flags():
+    assert native_bf16(CPUINFO.format("avx512_bf16 avx512_vnni"))
+    assert native_bf16(CPUINFO.format("amx_bf16 amx_tile"))
+    assert not native_bf16(CPUINFO.format("avx512_vnni"))
+    assert not native_bf16("")
+
+
+def test_resolve_names_the_arithmetic_or_refuses():
+    assert resolve("fp32") == "fp32" and resolve("bf16") == "bf16"
+    assert resolve("auto") == ("bf16" if native_bf16() else "fp32")
+    with pytest.raises(ValueError, match="unknown precision"):
+        resolve("fp16")
+
+
+@pytest.mark.parametrize("precision", ["bf16", "fp32"])
+def test_training_passes_keep_a_float32_model_that_learns(tmp_path, precision):
+    rng = np.random.default_rng(0)
+    x = np.broadcast_to((rng.random((48, 1, 1, 3)) * 255).astype(np.uint8), (48, 16, 16, 3)).copy()  # flat colours
+    c = onehot(rng.integers(0, 2, 48), 2)
+    model = AutoEncoder("cvam", 16, 8, 2, widths=(8, 16))
+    before = [p.detach().clone() for p in model.parameters()]
+    hist = train_autoencoder(model, x[:40], x[:40], c[:40], x[40:], x[40:], c[40:], tmp_path, minutes=5,
+                             batch=8, patience=1000, precision=precision, log=lambda *a: None,
+                             max_epochs=3)
+    assert len(hist["epoch"]) == 3 and np.all(np.isfinite(hist["val_l2"]))
+    assert hist["train_l2"][-1] < hist["train_l2"][0]
+    for p, b in zip(model.parameters(), before):
+        assert p.dtype == torch.float32 and p.is_contiguous()  # what the ONNX export gets
+    assert any(not torch.equal(p, b) for p, b in zip(model.parameters(), before))
