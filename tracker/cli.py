@@ -449,7 +449,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--init-from", metavar="CKPT",
                    help="start from another run's ae_checkpoint.pt (same network), e.g. to train on more data")
     s.add_argument("--precision", choices=["auto", "bf16", "fp32"], default="auto",
-                   help="arithmetic of the training passes: bf16 (bfloat16 autocast, about twice as fast where "
+                   help="arithmetic of the training passes: bf16 (bfloat16 autocast, faster where "
                         "the CPU has it natively), fp32, or auto (bf16 where native)")
     s.set_defaults(func=cmd_train)
 
@@ -479,7 +479,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--occlusion", type=fraction, default=0.0, metavar="P",
                    help="share of training images that get clutter pasted over them (occlusion augmentation)")
     s.add_argument("--precision", choices=["auto", "bf16", "fp32"], default="auto",
-                   help="arithmetic of the training passes: bf16 (bfloat16 autocast, about twice as fast where "
+                   help="arithmetic of the training passes: bf16 (bfloat16 autocast, faster where "
                         "the CPU has it natively), fp32, or auto (bf16 where native)")
     s.set_defaults(func=cmd_train_detector)
 
