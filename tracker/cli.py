@@ -354,6 +354,13 @@ def id_list(text: str) -> list[int]:
 # --------------------------------------------------------------------------- parser
 
 
+def _add_precision(s) -> None:
+    from .nets.precision import PRECISIONS  # no torch import
+    s.add_argument("--precision", choices=PRECISIONS, default="auto",
+                   help="arithmetic of the training passes: bf16 (bfloat16 autocast, faster where "
+                        "the CPU has it natively), fp32, or auto (bf16 where native)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="app.py", description="autopose: real-time monocular 6-DoF "
                                 "pose tracking from an autoencoder latent (Auto-Pose).")
@@ -448,9 +455,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--models-info", help="models_info.json (default: computed from the meshes)")
     s.add_argument("--init-from", metavar="CKPT",
                    help="start from another run's ae_checkpoint.pt (same network), e.g. to train on more data")
-    s.add_argument("--precision", choices=["auto", "bf16", "fp32"], default="auto",
-                   help="arithmetic of the training passes: bf16 (bfloat16 autocast, faster where "
-                        "the CPU has it natively), fp32, or auto (bf16 where native)")
+    _add_precision(s)
     s.set_defaults(func=cmd_train)
 
     s = sub.add_parser("refit-heads", help="refit a bundle's regressors and AAE codebook on its frozen encoder")
@@ -478,9 +483,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="start from another run's detector_ckpt_*.pt (same width and classes), e.g. to fine-tune on new data")
     s.add_argument("--occlusion", type=fraction, default=0.0, metavar="P",
                    help="share of training images that get clutter pasted over them (occlusion augmentation)")
-    s.add_argument("--precision", choices=["auto", "bf16", "fp32"], default="auto",
-                   help="arithmetic of the training passes: bf16 (bfloat16 autocast, faster where "
-                        "the CPU has it natively), fp32, or auto (bf16 where native)")
+    _add_precision(s)
     s.set_defaults(func=cmd_train_detector)
 
     s = sub.add_parser("ablate", help="regressor ablations (thesis Tables 4.1, 4.2) on the synthetic validation split")
