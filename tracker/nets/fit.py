@@ -80,8 +80,8 @@ def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, ou
     """Train until the time budget, early stopping, or ``max_epochs``. Resumes from
     ``out_dir/ae_checkpoint.pt`` when it exists; otherwise ``init_from`` (another run's
     checkpoint) gives the starting weights and optimiser state, with a fresh budget, history
-    and best validation loss (the validation crops differ). ``precision`` ('bf16' or 'fp32',
-    see ``precision.resolve``) is the arithmetic of the training passes; validation is float32.
+    and best validation loss (the validation crops differ). ``precision`` ('auto', 'bf16' or
+    'fp32', see ``precision.resolve``) is the arithmetic of the training passes; validation is float32.
     Returns the training history."""
     torch.manual_seed(seed)
     g = torch.Generator().manual_seed(seed)
@@ -116,6 +116,7 @@ def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, ou
         log("--init-from ignored: resuming this run's own checkpoint")
     variational = model.encoder.variational
     cond = model.n_cond > 0
+    precision = prec.resolve(precision)  # 'auto' too; once, not per batch
     prec.channels_last(model)
     n = len(x_tr)
     t_start = time.perf_counter() - spent
