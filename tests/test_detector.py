@@ -106,6 +106,24 @@ def test_occlusion_pastes_clutter_and_drops_hidden_boxes():
     assert torch.equal(same, x) and same_boxes[0] is boxes[0]
 
 
+def test_pasted_objects_join_the_targets():
+    torch = pytest.importorskip("torch")
+    from tracker.detector_train import occlude
+    x = torch.zeros(2, 3, 60, 80)
+    x[1, :, 20:30, 40:52] = 1.0  # item 1's object, class 3: the only bright pixels
+    boxes = [np.zeros((0, 5), np.float32), np.array([[3, 40, 20, 12, 10]], np.float32)]
+    out, kept = occlude(x.clone(), boxes, np.random.default_rng(1), p=1.0, objects=1.0)
+    assert len(kept[0]) >= 1 and set(kept[0][:, 0]) == {3}
+    for _, bx, by, bw, bh in kept[0]:  # each new target's box shows the pasted object
+        assert 0 <= bx and bx + bw <= 80 and 0 <= by and by + bh <= 60
+        assert out[0, 0, int(by):int(by + bh), int(bx):int(bx + bw)].min() == 1.0
+    assert torch.equal(out[1], x[1]) and np.array_equal(kept[1], boxes[1])  # nothing to take from item 0
+    # without objects the random stream and the result are those of plain clutter
+    a, ka = occlude(x.clone(), boxes, np.random.default_rng(2), p=1.0)
+    b, kb = occlude(x.clone(), boxes, np.random.default_rng(2), p=1.0, objects=0.0)
+    assert torch.equal(a, b) and all(np.array_equal(u, v) for u, v in zip(ka, kb))
+
+
 @pytest.fixture(scope="module")
 def tiny_detector_bundle(tiny_bundle, tmp_path_factory):
     from tracker.detector_train import train_detector

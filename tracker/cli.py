@@ -155,8 +155,8 @@ def cmd_train_detector(args) -> int:
     from .detector_train import train_detector
     d = train_detector(args.data, args.model, minutes=args.minutes, width=args.width, input_w=args.input[0],
                        input_h=args.input[1], batch=args.batch, seed=args.seed, max_images=args.max_images,
-                       lr=args.lr, init_from=args.init_from, occlusion=args.occlusion, precision=args.precision,
-                       command="app.py " + " ".join(sys.argv[1:]))
+                       lr=args.lr, init_from=args.init_from, occlusion=args.occlusion, paste_objects=args.paste_objects,
+                       precision=args.precision, command="app.py " + " ".join(sys.argv[1:]))
     v = d["training"]["validation_synthetic"]
     from .report import fmt_num
     print(f"detector added to {args.model}: synthetic validation AP {fmt_num(v['ap'])}, AP50 {fmt_num(v['ap50'])}")
@@ -483,6 +483,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="start from another run's detector_ckpt_*.pt (same width and classes), e.g. to fine-tune on new data")
     s.add_argument("--occlusion", type=fraction, default=0.0, metavar="P",
                    help="share of training images that get clutter pasted over them (occlusion augmentation)")
+    s.add_argument("--paste-objects", type=fraction, default=0.0, metavar="P",
+                   help="share of those pasted rectangles cut around another image's object, which then "
+                        "becomes a target too (objects in front of objects)")
     _add_precision(s)
     s.set_defaults(func=cmd_train_detector)
 

@@ -87,12 +87,15 @@ def draw_targets(boxes_list, n_classes: int, out_w: int, out_h: int, stride: int
     return hm, reg, mask
 
 
-def occlude(x, boxes_list, rng: np.random.Generator, p: float, max_covered: float = 0.5):
+def occlude(x, boxes_list, rng: np.random.Generator, p: float, max_covered: float = 0.5, objects: float = 0.0):
     """With probability ``p`` per batch item, paste 1-3 rectangles (8-30 % of the image's
     width and height each) cut from another item of the batch where it shows none of its
     objects (10 tries, else that rectangle is skipped), as clutter in front of the objects. A
     box more than ``max_covered`` hidden by them is dropped from the targets; the others keep
-    their boxes. ``x``: (B, 3, H, W) tensor, changed in place."""
+    their boxes. With probability ``objects`` a rectangle is instead cut around one of the
+    other item's objects (its box plus a 0-30 % margin), and that object joins the targets:
+    labelled objects in front of labelled objects, as the LM-O objects stand in a cluster.
+    ``x``: (B, 3, H, W) tensor, changed in place."""
     B, _, H, W = x.shape
     out = []
     src = x.clone()
@@ -101,7 +104,24 @@ def occlude(x, boxes_list, rng: np.random.Generator, p: float, max_covered: floa
             out.append(b)
             continue
         covered = np.zeros((H, W), bool)
+        pasted = []
         for _ in range(rng.integers(1, 4)):
+            if objects > 0 and rng.random() < objects:  # (no draw at 0: older runs' streams unchanged)
+                j = (i + int(rng.integers(1, B))) % B
+                if not len(boxes_list[j]):
+                    continue
+                c, bx, by, bw, bh = boxes_list[j][int(rng.integers(len(boxes_list[j])))]
+                m = rng.uniform(0, 0.3)
+                sx, sy = int(max(bx - m * bw, 0)), int(max(by - m * bh, 0))
+                w = int(min(np.ceil(bx + bw * (1 + m)), W)) - sx
+                h = int(min(np.ceil(by + bh * (1 + m)), H)) - sy
+                if w < 2 or h < 2:
+                    continue
+                x0, y0 = int(rng.integers(0, W - w + 1)), int(rng.integers(0, H - h + 1))
+                x[i, :, y0:y0 + h, x0:x0 + w] = src[j, :, sy:sy + h, sx:sx + w]
+                covered[y0:y0 + h, x0:x0 + w] = True
+                pasted.append([c, x0 + bx - sx, y0 + by - sy, bw, bh])
+                continue
             w, h = int(rng.uniform(0.08, 0.3) * W), int(rng.uniform(0.08, 0.3) * H)
             x0, y0 = int(rng.integers(0, W - w + 1)), int(rng.integers(0, H - h + 1))
             j = (i + int(rng.integers(1, B))) % B
@@ -118,13 +138,17 @@ def occlude(x, boxes_list, rng: np.random.Generator, p: float, max_covered: floa
             c1, r1 = int(min(np.ceil(bx + bw), W)), int(min(np.ceil(by + bh), H))
             area = max(c1 - c0, 0) * max(r1 - r0, 0)
             keep.append(area > 0 and covered[r0:r1, c0:c1].sum() <= max_covered * area)
-        out.append(b[np.asarray(keep, bool)] if len(b) else b)
+        kept = b[np.asarray(keep, bool)] if len(b) else b
+        # a later rectangle may cover part of an earlier pasted object; it stays a target
+        out.append(np.concatenate([kept, np.asarray(pasted, b.dtype).reshape(-1, 5)]) if pasted else kept)
     return x, out
 
 
-def augment_batch(x, boxes_list, rng: np.random.Generator, torch, occlusion: float = 0.0):
+def augment_batch(x, boxes_list, rng: np.random.Generator, torch, occlusion: float = 0.0,
+                  paste_objects: float = 0.0):
     """Random zoom (0.6-1.6, log-uniform) and shift on the whole batch item (boxes follow),
-    then (with ``occlusion`` > 0) clutter pasted over it (``occlude``), then colour
+    then (with ``occlusion`` > 0) clutter pasted over it (``occlude``; ``paste_objects`` is its
+    ``objects``), then colour
     (brightness, contrast, saturation, per-channel gain), blur and noise.
     ``x``: (B, 3, H, W) float in [0, 1]."""
     from torch.nn import functional as F
@@ -152,7 +176,7 @@ def augment_batch(x, boxes_list, rng: np.random.Generator, torch, occlusion: flo
         b[:, 1:] = np.stack([cx0, cy0, cx1 - cx0, cy1 - cy0], 1)
         out_boxes.append(b[keep])
     if occlusion > 0:
-        x, out_boxes = occlude(x, out_boxes, rng, occlusion)
+        x, out_boxes = occlude(x, out_boxes, rng, occlusion, objects=paste_objects)
     g = torch.from_numpy(rng.uniform(0.5, 1.5, (B, 1, 1, 1)).astype(np.float32))
     x = x * g                                                   # brightness
     m = x.mean(dim=(1, 2, 3), keepdim=True)
@@ -191,7 +215,7 @@ def _init_weights(torch, path, width: int, classes: list[int]) -> dict:
 
 def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32, input_w: int = 320,
                    input_h: int = 240, batch: int = 32, lr: float = 2e-3, seed: int = 0, max_images=None,
-                   val_parts: int = 20, threads: int = 2, init_from=None, occlusion: float = 0.0, log=print,
+                   val_parts: int = 20, threads: int = 2, init_from=None, occlusion: float = 0.0, paste_objects: float = 0.0, log=print,
                    command: str | None = None, precision: str = "auto") -> dict:
     from .train import _torch
     torch = _torch()
@@ -263,7 +287,7 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
             b_rng = np.random.default_rng([seed, state["step"]])
             idx = b_rng.choice(tr, batch, replace=False)
             x = torch.from_numpy(images[idx]).permute(0, 3, 1, 2).float().div_(255)
-            x, bl = augment_batch(x, [boxes[i] for i in idx], b_rng, torch, occlusion)
+            x, bl = augment_batch(x, [boxes[i] for i in idx], b_rng, torch, occlusion, paste_objects)
             hm_t, reg_t, mask_t = (torch.from_numpy(a) for a in draw_targets(bl, C, ow, oh, S))
             with prec.autocast(precision):
                 hm, reg = model.forward_logits(prec.channels_last((x - spec.mean) / spec.std))
@@ -318,6 +342,7 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     d["training"] = {"data": str(data_dir), "images": len(tr), "validation": len(va), "parameters": n_params,
                      "width": width, "steps": state["step"], "batch": batch, "lr": lr,
                      "minutes": round(state["seconds"] / 60, 1), "seed": seed, "occlusion": occlusion,
+                     **({"paste_objects": paste_objects} if paste_objects else {}),
                      "precision": precision,
                      "onnx_max_abs_diff": diff,
                      "validation_synthetic": ap, "command": command or "app.py " + " ".join(sys.argv[1:]),
