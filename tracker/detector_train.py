@@ -94,7 +94,8 @@ def occlude(x, boxes_list, rng: np.random.Generator, p: float, max_covered: floa
     box more than ``max_covered`` hidden by them is dropped from the targets; the others keep
     their boxes. With probability ``objects`` a rectangle is instead cut around one of the
     other item's objects (its box plus a 0-30 % margin), and that object joins the targets:
-    labelled objects in front of labelled objects, as the LM-O objects stand in a cluster.
+    labelled objects in front of labelled objects, as the LM-O objects stand in a cluster
+    (parts of the other item's objects caught in the margin are not labelled).
     ``x``: (B, 3, H, W) tensor, changed in place."""
     B, _, H, W = x.shape
     out = []
