@@ -124,6 +124,13 @@ def test_pasted_objects_join_the_targets():
     assert torch.equal(a, b) and all(np.array_equal(u, v) for u, v in zip(ka, kb))
 
 
+def test_pasting_objects_without_occlusion_is_refused(tiny_bundle):
+    pytest.importorskip("torch")
+    from tracker.detector_train import train_detector
+    with pytest.raises(UserError, match="--occlusion"):
+        train_detector(tiny_bundle.parent / "split", tiny_bundle, minutes=0.01, paste_objects=0.5)
+
+
 @pytest.fixture(scope="module")
 def tiny_detector_bundle(tiny_bundle, tmp_path_factory):
     from tracker.detector_train import train_detector

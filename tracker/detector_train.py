@@ -225,6 +225,9 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     from .nets import precision as prec
     from .nets.detector import CenterNetLite, focal_loss
     from .report import fmt_num
+    if paste_objects > 0 and occlusion <= 0:
+        raise UserError("--paste-objects cuts some of the occlusion rectangles around objects: "
+                        "it needs --occlusion above 0 as well")
     bundle = open_bundle(bundle_dir)  # verified before anything is changed
     torch.set_num_threads(threads)
     torch.manual_seed(seed)
