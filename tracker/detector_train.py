@@ -216,8 +216,12 @@ def _init_weights(torch, path, width: int, classes: list[int]) -> dict:
 
 def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32, input_w: int = 320,
                    input_h: int = 240, batch: int = 32, lr: float = 2e-3, seed: int = 0, max_images=None,
-                   val_parts: int = 20, threads: int = 2, init_from=None, occlusion: float = 0.0, paste_objects: float = 0.0, log=print,
-                   command: str | None = None, precision: str = "auto") -> dict:
+                   val_parts: int = 20, threads: int = 2, init_from=None, occlusion: float = 0.0,
+                   paste_objects: float = 0.0, log=print, command: str | None = None,
+                   precision: str = "auto") -> dict:
+    if paste_objects > 0 and occlusion <= 0:  # before torch is imported: nothing to wait for
+        raise UserError("--paste-objects cuts some of the occlusion rectangles around objects: "
+                        "it needs --occlusion above 0 as well")
     from .train import _torch
     torch = _torch()
     from .bundle import open_bundle, update_manifest
@@ -225,9 +229,6 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     from .nets import precision as prec
     from .nets.detector import CenterNetLite, focal_loss
     from .report import fmt_num
-    if paste_objects > 0 and occlusion <= 0:
-        raise UserError("--paste-objects cuts some of the occlusion rectangles around objects: "
-                        "it needs --occlusion above 0 as well")
     bundle = open_bundle(bundle_dir)  # verified before anything is changed
     torch.set_num_threads(threads)
     torch.manual_seed(seed)
@@ -346,7 +347,7 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     d["training"] = {"data": str(data_dir), "images": len(tr), "validation": len(va), "parameters": n_params,
                      "width": width, "steps": state["step"], "batch": batch, "lr": lr,
                      "minutes": round(state["seconds"] / 60, 1), "seed": seed, "occlusion": occlusion,
-                     **({"paste_objects": paste_objects} if paste_objects else {}),
+                     "paste_objects": paste_objects,
                      "precision": precision,
                      "onnx_max_abs_diff": diff,
                      "validation_synthetic": ap, "command": command or "app.py " + " ".join(sys.argv[1:]),
