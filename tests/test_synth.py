@@ -261,18 +261,39 @@ def test_an_interrupted_split_keeps_only_annotated_images(data_dir, tmp_path, mo
         assert {int(f.name[:6]) for f in (tmp_path / "s" / "000000" / sub).iterdir()} == {0, 1}, sub
 
 
-def test_hard_distractors_are_textured_tinted_and_unannotated(data_dir, tmp_path):
+def test_household_shapes_stand_upright_with_their_features():
+    from tracker.synth.randomise import household_meshes
+    mug, cup, bottle = household_meshes(np.random.default_rng(0), 3)
+    (x0, y0, _), (x1, y1, _) = mug.bounds
+    assert x1 - x0 > 1.3 * (y1 - y0)  # the handle sticks out on one side only
+    assert x1 > -x0 + 20
+    v = np.asarray(cup.vertices)
+    z0, z1 = v[:, 2].min(), v[:, 2].max()
+    width = lambda m: np.abs(v[m, :2]).max()
+    assert width(v[:, 2] > z1 - 1) > 1.15 * width(v[:, 2] < z0 + 1)  # wider at the rim
+    v = np.asarray(bottle.vertices)
+    assert np.ptp(v[:, 2]) > 1.5 * np.ptp(v[:, 0])  # tall
+    top = v[:, 2] > v[:, 2].max() - 1
+    assert np.abs(v[top, :2]).max() < 0.5 * np.abs(v[:, :2]).max()  # a neck
+
+
+@pytest.mark.parametrize("style", ["hard", "household"])
+def test_photo_distractors_are_textured_tinted_and_unannotated(data_dir, tmp_path, style):
     from dataclasses import asdict
 
     from tracker.synth import engine
     from tracker.synth.randomise import target_palette
-    cfg = _cfg(data_dir, seed=3, distractors="hard")
+    cfg = _cfg(data_dir, seed=3, distractors=style)
     engine._init_worker(asdict(cfg))
     try:
         assert engine._W["n_dis"] == 36
         cols = [np.unique(np.asarray(engine._W["scene"]._meshes[engine.DISTRACTOR_BASE + i].primitives[0].color_0)[:, :3],
-                          axis=0).shape[0] for i in range(3)]
+                          axis=0).shape[0] for i in (0, 1, 2, 33, 34, 35)]
         assert min(cols) > 20  # a photo's patch, not a flat colour
+        if style == "household":  # the second half: mugs, cups and bottles
+            from tracker.synth.randomise import household_meshes
+            mug = household_meshes(np.random.default_rng([3, 10]), 1)[0]
+            assert np.allclose(engine._W["verts"][engine.DISTRACTOR_BASE + 18], mug.vertices)
         for k in range(20):
             inst, n_t, _, _ = engine._sample_instances(np.random.default_rng([3, k]), cfg)
             n_d = sum(i >= engine.DISTRACTOR_BASE for i, _, _ in inst)

@@ -415,9 +415,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--gloss", type=float, default=0.0, metavar="P",
                    help="share of objects per image rendered glossy and partly metallic, with highlights "
                         "(0: matte only, as data made before it existed)")
-    s.add_argument("--distractors", choices=["plain", "hard"], default="plain",
+    s.add_argument("--distractors", choices=["plain", "hard", "household"], default="plain",
                    help="plain: 0-5 random primitives per image (as data made before); hard: 2-8 primitives "
-                        "textured from the photos and tinted, half the time with the targets' colours")
+                        "textured from the photos and tinted, half the time with the targets' colours; "
+                        "household: as hard, half of the shapes mugs, cups and bottles")
     s.add_argument("--obj-ids", type=id_list, help="comma-separated subset of the models' ids")
     s.add_argument("--workers", type=positive_int, default=2, help="render processes")
     s.add_argument("--depth", action="store_true", help="also write depth images (depth/, for VSD)")

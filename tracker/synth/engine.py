@@ -34,15 +34,16 @@ from ..camera import LMO_K
 from ..errors import UserError
 from ..visibility import scene_visibility
 from . import priors
-from .randomise import (Backgrounds, camera_effects, cast_shadows, composite, distractor_meshes, jitter_colours,
-                        target_palette, texture_from_photos, tint_distractors,
+from .randomise import (Backgrounds, camera_effects, cast_shadows, composite, distractor_meshes, household_meshes,
+                        jitter_colours, target_palette, texture_from_photos, tint_distractors,
                         list_backgrounds, sample_lights, sample_materials, table_surface)
 
 CHUNK = 1000
 DEPTH_SCALE = 0.1  # mm per unit of the written depth PNGs (up to 6.5 m)
 DISTRACTOR_BASE = 100000  # renderer ids of distractor meshes
 HARD_DISTRACTORS_PER_IMAGE = (2, 8)
-DISTRACTOR_STYLES = ("plain", "hard")
+DISTRACTOR_STYLES = ("plain", "hard", "household")
+PHOTO_DISTRACTORS = ("hard", "household")  # textured from the photos, tinted, 2-8 per image
 
 
 @dataclass
@@ -66,7 +67,8 @@ class SynthConfig:
     p_gloss: float = 0.0
     # "plain": 12 primitives with noisy random colours, 0-5 per image (data made before);
     # "hard": 36 primitives textured from the background photos, 2-8 per image, tinted per
-    # image, half the time with a target's colour (real clutter: yellow cups, white boxes)
+    # image, half the time with a target's colour (real clutter: yellow cups, white boxes);
+    # "household": as "hard", with 18 of the 36 shapes mugs, cups and bottles
     distractors: str = "plain"
     crop_size: int = 128  # clean targets, rendered in the visibility window (visibility.WINDOW_PAD)
     jpeg_quality: tuple = (70, 95)
@@ -108,8 +110,12 @@ def _init_worker(cfg_dict: dict):
     from ..render import Renderer
     cfg = SynthConfig(**cfg_dict)
     models = load_models(cfg.models_dir, cfg.obj_ids)
-    hard = cfg.distractors == "hard"
-    dis = distractor_meshes(np.random.default_rng([cfg.seed, 7]), 36 if hard else 12)
+    hard = cfg.distractors in PHOTO_DISTRACTORS
+    if cfg.distractors == "household":  # half primitives, half mugs, cups and bottles
+        dis = distractor_meshes(np.random.default_rng([cfg.seed, 7]), 18) + \
+            household_meshes(np.random.default_rng([cfg.seed, 10]), 18)
+    else:
+        dis = distractor_meshes(np.random.default_rng([cfg.seed, 7]), 36 if hard else 12)
     bgs = Backgrounds(list_backgrounds(cfg.backgrounds_dir))
     if hard:
         texture_from_photos(dis, bgs.images, np.random.default_rng([cfg.seed, 8]))
@@ -142,7 +148,7 @@ def _sample_instances(rng, cfg: SynthConfig):
     lo, hi = cfg.objects_per_image
     n_t = int(min(len(obj_ids), rng.integers(lo, hi + 1)))
     targets = [int(x) for x in rng.choice(obj_ids, n_t, replace=False)]
-    lo_d, hi_d = HARD_DISTRACTORS_PER_IMAGE if cfg.distractors == "hard" else cfg.distractors_per_image
+    lo_d, hi_d = HARD_DISTRACTORS_PER_IMAGE if cfg.distractors in PHOTO_DISTRACTORS else cfg.distractors_per_image
     n_d = int(rng.integers(lo_d, hi_d + 1))
     dis = [DISTRACTOR_BASE + int(x) for x in rng.integers(0, _W["n_dis"], n_d)]
     ids = targets + dis
@@ -181,7 +187,7 @@ def render_one(index: int, out_root: str) -> dict:
     lights, ambient = sample_lights(rng)
     if cfg.p_gloss > 0:
         sample_materials(scene, _W["obj_ids"], cfg.p_gloss, np.random.default_rng([cfg.seed, index, 1]))
-    if cfg.distractors == "hard":
+    if cfg.distractors in PHOTO_DISTRACTORS:
         tint_distractors(scene, [DISTRACTOR_BASE + i for i in range(_W["n_dis"])], _W["palette"],
                          np.random.default_rng([cfg.seed, index, 2]))
     scene.set_lights(lights)

@@ -178,6 +178,36 @@ def distractor_meshes(rng: np.random.Generator, n: int = 12) -> list[trimesh.Tri
     return out
 
 
+def household_meshes(rng: np.random.Generator, n: int = 18) -> list[trimesh.Trimesh]:
+    """Upright (z up) mugs with handles, cups wider at the top and bottles with a neck: the
+    real clutter the detector mistook for targets on the dev frames (a blue mug for the
+    holepuncher, a yellow cup for the duck, a bottle for the can). Grey until textured."""
+    def mug():
+        r, h = rng.uniform(35, 48), rng.uniform(80, 115)
+        body = trimesh.creation.cylinder(radius=r, height=h, sections=32)
+        handle = trimesh.creation.torus(major_radius=0.3 * h, minor_radius=rng.uniform(5, 9),
+                                        major_sections=24, minor_sections=8)
+        handle.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))
+        handle.apply_translation([r, 0, 0])
+        return trimesh.util.concatenate([body, handle])
+
+    def cup():
+        rb, h = rng.uniform(25, 35), rng.uniform(80, 120)
+        return trimesh.creation.revolve([[0, 0], [rb, 0], [rb * rng.uniform(1.2, 1.5), h], [0, h]], sections=32)
+
+    def bottle():
+        r, h, rn = rng.uniform(28, 45), rng.uniform(150, 260), rng.uniform(11, 18)
+        return trimesh.creation.revolve([[0, 0], [r, 0], [r, 0.6 * h], [rn, 0.8 * h], [rn, h], [0, h]], sections=32)
+
+    makers = [mug, cup, bottle]
+    out = []
+    for i in range(n):
+        m = makers[i % len(makers)]()
+        m.visual = trimesh.visual.ColorVisuals(m, vertex_colors=np.full((len(m.vertices), 4), 200, np.uint8))
+        out.append(m.subdivide() if len(m.vertices) < 400 else m)
+    return out
+
+
 def texture_from_photos(meshes: list[trimesh.Trimesh], photos: list[np.ndarray], rng: np.random.Generator) -> None:
     """Replace each mesh's vertex colours by a patch of a photo projected along a random axis,
     brightened towards white: printed boxes, mugs, cables and books rather than flat primitives.
