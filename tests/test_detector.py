@@ -171,6 +171,19 @@ def test_a_detector_can_start_from_another_runs_weights(tiny_detector_bundle, ti
                        init_from=tmp_path / "junk.pt", log=lambda *a: None)
 
 
+def test_a_run_resumes_only_with_its_own_options(tiny_detector_bundle, tiny_bundle, tmp_path):
+    from tracker.detector_train import train_detector
+    root = tmp_path / "lmo"
+    shutil.copytree(tiny_detector_bundle, root)
+    shutil.copytree(tiny_detector_bundle.parent / "lmo.work", tmp_path / "lmo.work")
+    logs = []
+    train_detector(tiny_bundle.parent / "split", root, minutes=0.02, width=8, batch=2, log=logs.append)
+    assert any(str(l).startswith("resumed from") for l in logs)
+    with pytest.raises(UserError, match=r"with --occlusion 0\.0: rerun with those options"):
+        train_detector(tiny_bundle.parent / "split", root, minutes=0.02, width=8, batch=2, occlusion=0.5,
+                       log=lambda *a: None)
+
+
 def test_tiny_training_exports_and_loads(tiny_detector_bundle, lmo_dev):
     from tracker.bundle import open_bundle
     from tracker.detector import Detector

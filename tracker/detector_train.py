@@ -254,8 +254,17 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
     ckpt = work / f"detector_ckpt_{key}.pt"
     state = {"step": 0, "seconds": 0.0, "history": []}
+    # what a resumed run must share with the run that wrote the checkpoint (the data and the
+    # network are in the key): otherwise one run silently mixes two augmentations or optimisers.
+    # Not --minutes: a larger budget trains a finished run on (docs/models.md)
+    recipe = {"batch": batch, "lr": lr, "seed": seed, "occlusion": occlusion, "paste_objects": paste_objects}
     if ckpt.is_file():
         z = torch.load(ckpt, weights_only=True)  # tensors and plain containers only: no code runs
+        old = z.get("recipe", recipe)  # checkpoints written before the recipe was kept: trusted
+        if old != recipe:
+            diff = ", ".join(f"--{k.replace('_', '-')} {old.get(k)}" for k in recipe if old.get(k) != recipe[k])
+            raise UserError(f"{ckpt} was written by a run with {diff}: rerun with those options to resume it, "
+                            f"or delete it to start afresh")
         if z.get("width") == width and z.get("classes") == spec.classes:
             model.load_state_dict(z["model"])
             opt.load_state_dict(z["opt"])
@@ -280,7 +289,7 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
 
     def save():
         torch.save({"model": model.state_dict(), "opt": opt.state_dict(), "state": state, "width": width,
-                    "classes": spec.classes}, ckpt)
+                    "classes": spec.classes, "recipe": recipe}, ckpt)
 
     try:
         model.train()
