@@ -110,14 +110,14 @@ def _init_worker(cfg_dict: dict):
     from ..render import Renderer
     cfg = SynthConfig(**cfg_dict)
     models = load_models(cfg.models_dir, cfg.obj_ids)
-    hard = cfg.distractors in PHOTO_DISTRACTORS
+    photo = cfg.distractors in PHOTO_DISTRACTORS
     if cfg.distractors == "household":  # half primitives, half mugs, cups and bottles
         dis = distractor_meshes(np.random.default_rng([cfg.seed, 7]), 18) + \
             household_meshes(np.random.default_rng([cfg.seed, 10]), 18)
     else:
-        dis = distractor_meshes(np.random.default_rng([cfg.seed, 7]), 36 if hard else 12)
+        dis = distractor_meshes(np.random.default_rng([cfg.seed, 7]), 36 if photo else 12)
     bgs = Backgrounds(list_backgrounds(cfg.backgrounds_dir))
-    if hard:
+    if photo:
         texture_from_photos(dis, bgs.images, np.random.default_rng([cfg.seed, 8]))
     meshes = {k: m.mesh for k, m in models.items()}
     if cfg.mesh_faces:
