@@ -354,10 +354,8 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
         raise UserError(f"exported detector differs from torch by {diff:.2e} (> 1e-4)")
     d = spec.to_dict()
     d["training"] = {"data": str(data_dir), "images": len(tr), "validation": len(va), "parameters": n_params,
-                     "width": width, "steps": state["step"], "batch": batch, "lr": lr,
-                     "minutes": round(state["seconds"] / 60, 1), "seed": seed, "occlusion": occlusion,
-                     "paste_objects": paste_objects,
-                     "precision": precision,
+                     "width": width, "steps": state["step"], **recipe,
+                     "minutes": round(state["seconds"] / 60, 1), "precision": precision,
                      "onnx_max_abs_diff": diff,
                      "validation_synthetic": ap, "command": command or "app.py " + " ".join(sys.argv[1:]),
                      "loss_history": state["history"][-20:],

@@ -42,7 +42,9 @@ CHUNK = 1000
 DEPTH_SCALE = 0.1  # mm per unit of the written depth PNGs (up to 6.5 m)
 DISTRACTOR_BASE = 100000  # renderer ids of distractor meshes
 HARD_DISTRACTORS_PER_IMAGE = (2, 8)
-DISTRACTOR_STYLES = ("plain", "hard", "household")
+# per style: how many primitives and how many household shapes (mugs, cups, bottles)
+DISTRACTOR_SETS = {"plain": (12, 0), "hard": (36, 0), "household": (18, 18)}
+DISTRACTOR_STYLES = tuple(DISTRACTOR_SETS)
 PHOTO_DISTRACTORS = ("hard", "household")  # textured from the photos, tinted, 2-8 per image
 
 
@@ -111,11 +113,9 @@ def _init_worker(cfg_dict: dict):
     cfg = SynthConfig(**cfg_dict)
     models = load_models(cfg.models_dir, cfg.obj_ids)
     photo = cfg.distractors in PHOTO_DISTRACTORS
-    if cfg.distractors == "household":  # half primitives, half mugs, cups and bottles
-        dis = distractor_meshes(np.random.default_rng([cfg.seed, 7]), 18) + \
-            household_meshes(np.random.default_rng([cfg.seed, 10]), 18)
-    else:
-        dis = distractor_meshes(np.random.default_rng([cfg.seed, 7]), 36 if photo else 12)
+    n_primitives, n_household = DISTRACTOR_SETS[cfg.distractors]
+    dis = distractor_meshes(np.random.default_rng([cfg.seed, 7]), n_primitives) + \
+        household_meshes(np.random.default_rng([cfg.seed, 10]), n_household)
     bgs = Backgrounds(list_backgrounds(cfg.backgrounds_dir))
     if photo:
         texture_from_photos(dis, bgs.images, np.random.default_rng([cfg.seed, 8]))
