@@ -156,6 +156,7 @@ def cmd_train_detector(args) -> int:
     d = train_detector(args.data, args.model, minutes=args.minutes, width=args.width, input_w=args.input[0],
                        input_h=args.input[1], batch=args.batch, seed=args.seed, max_images=args.max_images,
                        lr=args.lr, init_from=args.init_from, occlusion=args.occlusion, paste_objects=args.paste_objects,
+                       cutouts=args.cutouts, cutout_share=args.cutout_share,
                        precision=args.precision, command="app.py " + " ".join(sys.argv[1:]))
     v = d["training"]["validation_synthetic"]
     from .report import fmt_num
@@ -487,6 +488,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--paste-objects", type=fraction, default=0.0, metavar="P",
                    help="share of those pasted rectangles cut around another image's object, which then "
                         "becomes a target too (objects in front of objects)")
+    s.add_argument("--cutouts", metavar="DIR",
+                   help="folder of RGBA images of things cut out of their background (PNG with alpha), "
+                        "pasted over training images as real clutter that is not a target (docs/models.md)")
+    s.add_argument("--cutout-share", type=fraction, default=0.5, metavar="P",
+                   help="share of training images that get 1-3 cut-outs pasted over them (with --cutouts)")
     _add_precision(s)
     s.set_defaults(func=cmd_train_detector)
 

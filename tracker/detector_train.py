@@ -133,23 +133,100 @@ def occlude(x, boxes_list, rng: np.random.Generator, p: float, max_covered: floa
                     x[i, :, y0:y0 + h, x0:x0 + w] = src[j, :, sy:sy + h, sx:sx + w]
                     covered[y0:y0 + h, x0:x0 + w] = True
                     break
-        keep = []
-        for c, bx, by, bw, bh in b:
-            c0, r0 = int(max(bx, 0)), int(max(by, 0))
-            c1, r1 = int(min(np.ceil(bx + bw), W)), int(min(np.ceil(by + bh), H))
-            area = max(c1 - c0, 0) * max(r1 - r0, 0)
-            keep.append(area > 0 and covered[r0:r1, c0:c1].sum() <= max_covered * area)
-        kept = b[np.asarray(keep, bool)] if len(b) else b
+        kept = _uncovered(b, covered, max_covered)
         # a later rectangle may cover part of an earlier pasted object; it stays a target
         out.append(np.concatenate([kept, np.asarray(pasted, b.dtype).reshape(-1, 5)]) if pasted else kept)
     return x, out
 
 
+def _uncovered(b, covered, max_covered: float):
+    """The boxes of ``b`` ([class, x, y, w, h] rows) at most ``max_covered`` hidden by ``covered``."""
+    H, W = covered.shape
+    keep = []
+    for c, bx, by, bw, bh in b:
+        c0, r0 = int(max(bx, 0)), int(max(by, 0))
+        c1, r1 = int(min(np.ceil(bx + bw), W)), int(min(np.ceil(by + bh), H))
+        area = max(c1 - c0, 0) * max(r1 - r0, 0)
+        keep.append(area > 0 and covered[r0:r1, c0:c1].sum() <= max_covered * area)
+    return b[np.asarray(keep, bool)] if len(b) else b
+
+
+CUTOUT_MAX_SIDE = 160  # px: the largest paste is 40 % of a 320-wide input
+
+
+def load_cutouts(folder, log=print) -> list[np.ndarray]:
+    """RGBA uint8 arrays of the images under ``folder`` (recursively) that have an alpha channel
+    with both clear and opaque pixels: photos or drawings of things cut out of their background.
+    Each is cropped to its opaque pixels and shrunk to at most ``CUTOUT_MAX_SIDE`` px."""
+    import cv2
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise UserError(f"--cutouts {folder}: no such folder")
+    files = sorted(f for f in folder.rglob("*") if f.suffix.lower() in (".png", ".webp", ".tif", ".tiff"))
+    out, skipped = [], 0
+    for f in files:
+        im = cv2.imread(str(f), cv2.IMREAD_UNCHANGED)
+        if im is None or im.ndim != 3 or im.shape[2] != 4 or im.dtype != np.uint8:
+            skipped += 1
+            continue
+        a = im[..., 3]
+        ys, xs = np.nonzero(a > 127)
+        if len(ys) < 64 or (a > 127).all():
+            skipped += 1
+            continue
+        im = im[ys.min():ys.max() + 1, xs.min():xs.max() + 1]
+        s = CUTOUT_MAX_SIDE / max(im.shape[:2])
+        if s < 1:
+            im = cv2.resize(im, (max(round(im.shape[1] * s), 1), max(round(im.shape[0] * s), 1)),
+                            interpolation=cv2.INTER_AREA)
+        out.append(np.ascontiguousarray(im[..., [2, 1, 0, 3]]))  # BGRA -> RGBA
+    if not out:
+        raise UserError(f"--cutouts {folder}: no images with transparency (RGBA PNG) found")
+    log(f"cut-outs: {len(out)} images from {folder}" + (f" ({skipped} without transparency skipped)" if skipped else ""))
+    return out
+
+
+def paste_cutouts(x, boxes_list, rng: np.random.Generator, cutouts: list[np.ndarray], p: float,
+                  max_covered: float = 0.5):
+    """With probability ``p`` per batch item, alpha-blend 1-3 cut-outs (longer side 6-40 % of the
+    image's width, mirrored at random, brightness x0.7-1.3) at random places, part of them
+    possibly outside the image: real things that are not targets, in front of the scene. Boxes
+    more than ``max_covered`` hidden by their opaque pixels leave the targets.
+    ``x``: (B, 3, H, W) float tensor in [0, 1], changed in place."""
+    import cv2
+    import torch
+    B, _, H, W = x.shape
+    out = []
+    for i, b in enumerate(boxes_list):
+        if rng.random() >= p:
+            out.append(b)
+            continue
+        covered = np.zeros((H, W), bool)
+        for _ in range(rng.integers(1, 4)):
+            im = cutouts[int(rng.integers(len(cutouts)))]
+            s = rng.uniform(0.06, 0.4) * W / max(im.shape[:2])
+            w, h = max(round(im.shape[1] * s), 2), max(round(im.shape[0] * s), 2)
+            im = cv2.resize(im, (w, h), interpolation=cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR)
+            if rng.random() < 0.5:
+                im = im[:, ::-1]
+            x0, y0 = int(rng.integers(-w // 2, W - w // 2)), int(rng.integers(-h // 2, H - h // 2))
+            c0, r0, c1, r1 = max(x0, 0), max(y0, 0), min(x0 + w, W), min(y0 + h, H)
+            part = im[r0 - y0:r1 - y0, c0 - x0:c1 - x0]
+            rgb = torch.from_numpy(np.ascontiguousarray(part[..., :3].transpose(2, 0, 1))).float()
+            rgb = rgb * float(rng.uniform(0.7, 1.3) / 255)
+            a = torch.from_numpy(np.ascontiguousarray(part[..., 3])).float()[None] / 255
+            x[i, :, r0:r1, c0:c1] = (rgb * a + x[i, :, r0:r1, c0:c1] * (1 - a)).clamp(0, 1)
+            covered[r0:r1, c0:c1] |= part[..., 3] > 127
+        out.append(_uncovered(b, covered, max_covered))
+    return x, out
+
+
 def augment_batch(x, boxes_list, rng: np.random.Generator, torch, occlusion: float = 0.0,
-                  paste_objects: float = 0.0):
+                  paste_objects: float = 0.0, cutouts: list[np.ndarray] | None = None, cutout_share: float = 0.0):
     """Random zoom (0.6-1.6, log-uniform) and shift on the whole batch item (boxes follow),
     then (with ``occlusion`` > 0) clutter pasted over it (``occlude``; ``paste_objects`` is its
-    ``objects``), then colour
+    ``objects``), then (with ``cutouts`` and ``cutout_share`` > 0) real cut-outs over a share of
+    the items (``paste_cutouts``), then colour
     (brightness, contrast, saturation, per-channel gain), blur and noise.
     ``x``: (B, 3, H, W) float in [0, 1]."""
     from torch.nn import functional as F
@@ -178,6 +255,8 @@ def augment_batch(x, boxes_list, rng: np.random.Generator, torch, occlusion: flo
         out_boxes.append(b[keep])
     if occlusion > 0:
         x, out_boxes = occlude(x, out_boxes, rng, occlusion, objects=paste_objects)
+    if cutouts and cutout_share > 0:  # (no draw without: older runs' streams unchanged)
+        x, out_boxes = paste_cutouts(x, out_boxes, rng, cutouts, cutout_share)
     g = torch.from_numpy(rng.uniform(0.5, 1.5, (B, 1, 1, 1)).astype(np.float32))
     x = x * g                                                   # brightness
     m = x.mean(dim=(1, 2, 3), keepdim=True)
@@ -217,11 +296,12 @@ def _init_weights(torch, path, width: int, classes: list[int]) -> dict:
 def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32, input_w: int = 320,
                    input_h: int = 240, batch: int = 32, lr: float = 2e-3, seed: int = 0, max_images=None,
                    val_parts: int = 20, threads: int = 2, init_from=None, occlusion: float = 0.0,
-                   paste_objects: float = 0.0, log=print, command: str | None = None,
-                   precision: str = "auto") -> dict:
+                   paste_objects: float = 0.0, cutouts=None, cutout_share: float = 0.5, log=print,
+                   command: str | None = None, precision: str = "auto") -> dict:
     if paste_objects > 0 and occlusion <= 0:  # before torch is imported: nothing to wait for
         raise UserError("--paste-objects cuts some of the occlusion rectangles around objects: "
                         "it needs --occlusion above 0 as well")
+    cutout_images = load_cutouts(cutouts, log) if cutouts else None
     from .train import _torch
     torch = _torch()
     from .bundle import open_bundle, update_manifest
@@ -257,10 +337,13 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     # what a resumed run must share with the run that wrote the checkpoint (the data and the
     # network are in the key): otherwise one run silently mixes two augmentations or optimisers.
     # Not --minutes: a larger budget trains a finished run on (docs/models.md)
-    recipe = {"batch": batch, "lr": lr, "seed": seed, "occlusion": occlusion, "paste_objects": paste_objects}
+    recipe = {"batch": batch, "lr": lr, "seed": seed, "occlusion": occlusion, "paste_objects": paste_objects,
+              "cutouts": str(Path(cutouts).resolve()) if cutouts else None,
+              "cutout_share": cutout_share if cutouts else 0.0}
     if ckpt.is_file():
         z = torch.load(ckpt, weights_only=True)  # tensors and plain containers only: no code runs
-        old = z.get("recipe", recipe)  # checkpoints written before the recipe was kept: trusted
+        # checkpoints written before the recipe was kept are trusted; keys added since have their off value
+        old = {"cutouts": None, "cutout_share": 0.0, **z.get("recipe", recipe)}
         if old != recipe:
             diff = ", ".join(f"--{k.replace('_', '-')} {old.get(k)}" for k in recipe if old.get(k) != recipe[k])
             raise UserError(f"{ckpt} was written by a run with {diff}: rerun with those options to resume it, "
@@ -301,7 +384,8 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
             b_rng = np.random.default_rng([seed, state["step"]])
             idx = b_rng.choice(tr, batch, replace=False)
             x = torch.from_numpy(images[idx]).permute(0, 3, 1, 2).float().div_(255)
-            x, bl = augment_batch(x, [boxes[i] for i in idx], b_rng, torch, occlusion, paste_objects)
+            x, bl = augment_batch(x, [boxes[i] for i in idx], b_rng, torch, occlusion, paste_objects,
+                                  cutout_images, recipe["cutout_share"])
             hm_t, reg_t, mask_t = (torch.from_numpy(a) for a in draw_targets(bl, C, ow, oh, S))
             with prec.autocast(precision):
                 hm, reg = model.forward_logits(prec.channels_last((x - spec.mean) / spec.std))
@@ -355,6 +439,7 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     d = spec.to_dict()
     d["training"] = {"data": str(data_dir), "images": len(tr), "validation": len(va), "parameters": n_params,
                      "width": width, "steps": state["step"], **recipe,
+                     **({"cutout_images": len(cutout_images)} if cutout_images else {}),
                      "minutes": round(state["seconds"] / 60, 1), "precision": precision,
                      "onnx_max_abs_diff": diff,
                      "validation_synthetic": ap, "command": command or "app.py " + " ".join(sys.argv[1:]),
