@@ -129,20 +129,24 @@ def _write_cutouts(folder):
     folder.mkdir(parents=True, exist_ok=True)
     im = np.zeros((40, 60, 4), np.uint8)  # BGRA: a red 20x30 block in a clear border
     im[10:30, 15:45] = (0, 0, 255, 255)
+    im[10:30, 45] = (255, 0, 0, 128)      # and a half-clear blue column beside it
     cv2.imwrite(str(folder / "block.png"), im)
     cv2.imwrite(str(folder / "opaque.png"), np.full((20, 20, 4), 255, np.uint8))  # nothing cut out
     cv2.imwrite(str(folder / "photo.png"), np.full((20, 20, 3), 90, np.uint8))    # no alpha at all
     (folder / "notes.txt").write_text("not an image")
 
 
-def test_cutouts_load_cropped_rgba_and_skip_images_without_transparency(tmp_path):
+def test_cutouts_load_cropped_premultiplied_rgba_and_skip_images_without_transparency(tmp_path):
     from tracker.detector_train import load_cutouts
     _write_cutouts(tmp_path / "cut" / "sub")
     logs = []
-    (c,) = load_cutouts(tmp_path / "cut", logs.append)  # found in a subfolder
-    assert c.shape == (20, 30, 4) and (c[..., 3] == 255).all()       # cropped to its opaque pixels
-    assert (c[..., 0] == 255).all() and (c[..., 1:3] == 0).all()      # RGB order inside
-    assert "2 without transparency skipped" in logs[0]
+    (c,), ident = load_cutouts(tmp_path / "cut", logs.append)  # found in a subfolder
+    assert c.shape == (20, 31, 4)                                 # cropped to its non-clear pixels
+    assert (c[:, :30] == (255, 0, 0, 255)).all()                  # RGB order inside
+    assert (c[:, 30] == (0, 0, 128, 128)).all()                   # colour times alpha
+    assert "2 skipped" in logs[0] and ident.startswith("1 images, id ")
+    (tmp_path / "cut" / "sub" / "more.png").write_bytes((tmp_path / "cut" / "sub" / "block.png").read_bytes())
+    assert load_cutouts(tmp_path / "cut", log=lambda *a: None)[1].startswith("2 images")
     (tmp_path / "none").mkdir()
     with pytest.raises(UserError, match="no images with transparency"):
         load_cutouts(tmp_path / "none", log=lambda *a: None)
@@ -153,31 +157,38 @@ def test_cutouts_load_cropped_rgba_and_skip_images_without_transparency(tmp_path
 def test_cutouts_are_blended_by_their_alpha_and_hide_boxes():
     torch = pytest.importorskip("torch")
     from tracker.detector_train import paste_cutouts
-    cut = np.zeros((20, 40, 4), np.uint8)
-    cut[..., 0] = 255
-    cut[:, 20:, 3] = 255  # the left half is clear: it must not show
-    boxes = [np.array([[0, 0, 0, 80, 60], [1, 10, 10, 4, 4], [2, 60, 40, 4, 4]], np.float32)] * 6
-    x = torch.zeros(6, 3, 60, 80)
+    cut = np.zeros((20, 40, 4), np.uint8)   # premultiplied: pure red on the right, clear on the left
+    cut[:, 20:] = (255, 0, 0, 255)
+    grid = np.array([[k, 4 * (k % 20), 4 * (k // 20), 4, 4] for k in range(300)], np.float32)  # 4x4 boxes tiling 80x60
+    boxes = [grid] * 8
+    x = torch.full((8, 3, 60, 80), 0.2)
     out, kept = paste_cutouts(x.clone(), boxes, np.random.default_rng(0), [cut], p=1.0)
+    n_hidden = 0
     for img, k in zip(out, kept):
-        red = (img[0] > 0).numpy()
-        assert red.any() and torch.equal(img[1:], x[0, 1:])  # only red, opaque pixels were pasted
-        assert red.mean() < 0.5
-        for c, bx, by, bw, bh in boxes[0]:
-            hidden = red[int(by):int(by + bh), int(bx):int(bx + bw)].mean() > 0.5
-            assert (c in k[:, 0]) != hidden                   # a box leaves the targets when hidden
+        g = img[1].numpy()                   # the cut-out has no green: green = 0.2 x (1 - alpha)
+        assert torch.equal(img[1], img[2])   # the background shows through by (1 - alpha) alone
+        clear = g == np.float32(0.2)
+        assert 0 < (~clear).mean() < 0.5 and (img[0].numpy()[clear] == np.float32(0.2)).all()
+        opaque = g < 0.1                     # alpha > 127
+        for c, bx, by, bw, bh in grid:
+            hidden = opaque[int(by):int(by + bh), int(bx):int(bx + bw)].mean() > 0.5
+            assert (c in k[:, 0]) != hidden  # a box leaves the targets exactly when hidden
+            n_hidden += hidden
+    assert n_hidden > 0
     # the same draws with an opaque cut-out: the clear half showed nothing, the opaque half all
-    full, _ = paste_cutouts(x.clone(), boxes, np.random.default_rng(0), [np.where(cut > 0, cut, 255)], p=1.0)
-    half, whole = (out[:, 0] > 0).numpy(), (full[:, 0] > 0).numpy()
+    full, _ = paste_cutouts(x.clone(), boxes, np.random.default_rng(0), [np.zeros_like(cut) + np.uint8([255, 0, 0, 255])], p=1.0)
+    half, whole = (out[:, 1] < 0.2).numpy(), (full[:, 1] < 0.2).numpy()
     assert not (half & ~whole).any() and 0.4 < half.sum() / whole.sum() < 0.6
     same, same_boxes = paste_cutouts(x.clone(), boxes, np.random.default_rng(0), [cut], p=0.0)
     assert torch.equal(same, x) and same_boxes[0] is boxes[0]
 
 
-def test_a_missing_cutout_folder_stops_before_training(tiny_bundle, tmp_path):
+def test_cutout_options_are_checked_before_training(tiny_bundle, tmp_path):
     from tracker.detector_train import train_detector
     with pytest.raises(UserError, match="--cutouts .*no such folder"):
         train_detector(tiny_bundle.parent / "split", tiny_bundle, minutes=0.01, cutouts=tmp_path / "nope")
+    with pytest.raises(UserError, match="--cutout-share .* needs --cutouts"):
+        train_detector(tiny_bundle.parent / "split", tiny_bundle, minutes=0.01, cutout_share=0.3)
 
 
 def test_pasting_objects_without_occlusion_is_refused(tiny_bundle):
@@ -239,7 +250,7 @@ def test_a_run_resumes_only_with_its_own_options(tiny_detector_bundle, tiny_bund
         train_detector(tiny_bundle.parent / "split", root, minutes=0.02, width=8, batch=2, occlusion=0.5,
                        log=lambda *a: None)
     _write_cutouts(tmp_path / "cut")
-    with pytest.raises(UserError, match=r"with --cutouts None, --cutout-share 0\.0: rerun"):
+    with pytest.raises(UserError, match=r"with no --cutouts: rerun"):
         train_detector(tiny_bundle.parent / "split", root, minutes=0.02, width=8, batch=2, cutouts=tmp_path / "cut",
                        log=lambda *a: None)
 

@@ -491,8 +491,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--cutouts", metavar="DIR",
                    help="folder of RGBA images of things cut out of their background (PNG with alpha), "
                         "pasted over training images as real clutter that is not a target (docs/models.md)")
-    s.add_argument("--cutout-share", type=fraction, default=0.5, metavar="P",
-                   help="share of training images that get 1-3 cut-outs pasted over them (with --cutouts)")
+    s.add_argument("--cutout-share", type=fraction, default=None, metavar="P",
+                   help="share of training images that get 1-3 cut-outs pasted over them (with --cutouts; default 0.5)")
     _add_precision(s)
     s.set_defaults(func=cmd_train_detector)
 

@@ -17,6 +17,7 @@ import sys
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 from tqdm import tqdm
 
@@ -27,6 +28,7 @@ from .errors import UserError
 from .paths import work_dir
 
 MIN_VISIB = 0.1
+CUTOUT_MAX_SIDE = 160  # px a cut-out is kept at; pastes reach 40 % of the input width (128 px at 320)
 
 
 def load_detection_set(split_dir, spec: DetectorSpec, cache: Path | None = None, max_images=None, log=print):
@@ -151,51 +153,55 @@ def _uncovered(b, covered, max_covered: float):
     return b[np.asarray(keep, bool)] if len(b) else b
 
 
-CUTOUT_MAX_SIDE = 160  # px: the largest paste is 40 % of a 320-wide input
-
-
-def load_cutouts(folder, log=print) -> list[np.ndarray]:
-    """RGBA uint8 arrays of the images under ``folder`` (recursively) that have an alpha channel
-    with both clear and opaque pixels: photos or drawings of things cut out of their background.
-    Each is cropped to its opaque pixels and shrunk to at most ``CUTOUT_MAX_SIDE`` px."""
-    import cv2
+def load_cutouts(folder, log=print) -> tuple[list[np.ndarray], str]:
+    """The ``.png .webp .tif .tiff`` images under ``folder`` (recursively) whose alpha channel
+    has clear pixels and at least 64 opaque ones (alpha > 127): photos or drawings of things
+    cut out of their background. Each is cropped to its non-clear pixels, shrunk to at most
+    ``CUTOUT_MAX_SIDE`` px and kept as premultiplied RGBA uint8 (colour x alpha: resizing then
+    blends no colour of the clear pixels into the edges). Also returns the set's identity (count
+    and a hash of the files' relative names and sizes) for the checkpoint's recipe."""
     folder = Path(folder)
     if not folder.is_dir():
         raise UserError(f"--cutouts {folder}: no such folder")
     files = sorted(f for f in folder.rglob("*") if f.suffix.lower() in (".png", ".webp", ".tif", ".tiff"))
-    out, skipped = [], 0
+    out, used, skipped = [], hashlib.sha1(), 0
     for f in files:
         im = cv2.imread(str(f), cv2.IMREAD_UNCHANGED)
+        if im is not None and im.dtype == np.uint16:
+            im = (im >> 8).astype(np.uint8)
         if im is None or im.ndim != 3 or im.shape[2] != 4 or im.dtype != np.uint8:
             skipped += 1
             continue
         a = im[..., 3]
-        ys, xs = np.nonzero(a > 127)
-        if len(ys) < 64 or (a > 127).all():
+        if (a > 127).sum() < 64 or (a > 0).all():
             skipped += 1
             continue
+        ys, xs = np.nonzero(a)
         im = im[ys.min():ys.max() + 1, xs.min():xs.max() + 1]
+        im = np.dstack([(im[..., [2, 1, 0]].astype(np.uint16) * im[..., 3:] + 127) // 255, im[..., 3]]).astype(np.uint8)
         s = CUTOUT_MAX_SIDE / max(im.shape[:2])
         if s < 1:
             im = cv2.resize(im, (max(round(im.shape[1] * s), 1), max(round(im.shape[0] * s), 1)),
                             interpolation=cv2.INTER_AREA)
-        out.append(np.ascontiguousarray(im[..., [2, 1, 0, 3]]))  # BGRA -> RGBA
+        out.append(np.ascontiguousarray(im))
+        used.update(f"{f.relative_to(folder).as_posix()}:{f.stat().st_size}\n".encode())
     if not out:
         raise UserError(f"--cutouts {folder}: no images with transparency (RGBA PNG) found")
-    log(f"cut-outs: {len(out)} images from {folder}" + (f" ({skipped} without transparency skipped)" if skipped else ""))
-    return out
+    log(f"cut-outs: {len(out)} images from {folder}"
+        + (f" ({skipped} skipped: unreadable, no alpha, or no clear or too few opaque pixels)" if skipped else ""))
+    return out, f"{len(out)} images, id {used.hexdigest()[:10]}"
 
 
 def paste_cutouts(x, boxes_list, rng: np.random.Generator, cutouts: list[np.ndarray], p: float,
                   max_covered: float = 0.5):
-    """With probability ``p`` per batch item, alpha-blend 1-3 cut-outs (longer side 6-40 % of the
-    image's width, mirrored at random, brightness x0.7-1.3) at random places, part of them
-    possibly outside the image: real things that are not targets, in front of the scene. Boxes
-    more than ``max_covered`` hidden by their opaque pixels leave the targets.
-    ``x``: (B, 3, H, W) float tensor in [0, 1], changed in place."""
-    import cv2
+    """With probability ``p`` per batch item, alpha-blend 1-3 cut-outs (premultiplied RGBA, as
+    ``load_cutouts``; longer side 6-40 % of the image's width, mirrored at random, brightness
+    x0.7-1.3) at random places, part of them possibly outside the image: real things that are
+    not targets, in front of the scene. Boxes more than ``max_covered`` hidden by their opaque
+    pixels (alpha > 127) leave the targets. ``x``: (B, 3, H, W) float tensor in [0, 1], changed
+    in place."""
     import torch
-    B, _, H, W = x.shape
+    _, _, H, W = x.shape
     out = []
     for i, b in enumerate(boxes_list):
         if rng.random() >= p:
@@ -215,7 +221,7 @@ def paste_cutouts(x, boxes_list, rng: np.random.Generator, cutouts: list[np.ndar
             rgb = torch.from_numpy(np.ascontiguousarray(part[..., :3].transpose(2, 0, 1))).float()
             rgb = rgb * float(rng.uniform(0.7, 1.3) / 255)
             a = torch.from_numpy(np.ascontiguousarray(part[..., 3])).float()[None] / 255
-            x[i, :, r0:r1, c0:c1] = (rgb * a + x[i, :, r0:r1, c0:c1] * (1 - a)).clamp(0, 1)
+            x[i, :, r0:r1, c0:c1] = (rgb + x[i, :, r0:r1, c0:c1] * (1 - a)).clamp(0, 1)
             covered[r0:r1, c0:c1] |= part[..., 3] > 127
         out.append(_uncovered(b, covered, max_covered))
     return x, out
@@ -296,12 +302,14 @@ def _init_weights(torch, path, width: int, classes: list[int]) -> dict:
 def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32, input_w: int = 320,
                    input_h: int = 240, batch: int = 32, lr: float = 2e-3, seed: int = 0, max_images=None,
                    val_parts: int = 20, threads: int = 2, init_from=None, occlusion: float = 0.0,
-                   paste_objects: float = 0.0, cutouts=None, cutout_share: float = 0.5, log=print,
+                   paste_objects: float = 0.0, cutouts=None, cutout_share: float | None = None, log=print,
                    command: str | None = None, precision: str = "auto") -> dict:
     if paste_objects > 0 and occlusion <= 0:  # before torch is imported: nothing to wait for
         raise UserError("--paste-objects cuts some of the occlusion rectangles around objects: "
                         "it needs --occlusion above 0 as well")
-    cutout_images = load_cutouts(cutouts, log) if cutouts else None
+    if cutout_share is not None and not cutouts:
+        raise UserError("--cutout-share is the share of images that get cut-outs: it needs --cutouts DIR as well")
+    cutout_images, cutout_set = load_cutouts(cutouts, log) if cutouts else (None, None)
     from .train import _torch
     torch = _torch()
     from .bundle import open_bundle, update_manifest
@@ -338,14 +346,15 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     # network are in the key): otherwise one run silently mixes two augmentations or optimisers.
     # Not --minutes: a larger budget trains a finished run on (docs/models.md)
     recipe = {"batch": batch, "lr": lr, "seed": seed, "occlusion": occlusion, "paste_objects": paste_objects,
-              "cutouts": str(Path(cutouts).resolve()) if cutouts else None,
-              "cutout_share": cutout_share if cutouts else 0.0}
+              "cutouts": cutout_set, "cutout_share": (0.5 if cutout_share is None else cutout_share) if cutouts else 0.0}
     if ckpt.is_file():
         z = torch.load(ckpt, weights_only=True)  # tensors and plain containers only: no code runs
         # checkpoints written before the recipe was kept are trusted; keys added since have their off value
         old = {"cutouts": None, "cutout_share": 0.0, **z.get("recipe", recipe)}
         if old != recipe:
-            diff = ", ".join(f"--{k.replace('_', '-')} {old.get(k)}" for k in recipe if old.get(k) != recipe[k])
+            diff = ", ".join(("no --cutouts" if old[k] is None else f"--cutouts (a folder of {old[k]})") if k == "cutouts"
+                             else f"--{k.replace('_', '-')} {old.get(k)}"
+                             for k in recipe if old.get(k) != recipe[k] and not (k == "cutout_share" and not old["cutouts"]))
             raise UserError(f"{ckpt} was written by a run with {diff}: rerun with those options to resume it, "
                             f"or delete it to start afresh")
         if z.get("width") == width and z.get("classes") == spec.classes:
@@ -439,7 +448,7 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     d = spec.to_dict()
     d["training"] = {"data": str(data_dir), "images": len(tr), "validation": len(va), "parameters": n_params,
                      "width": width, "steps": state["step"], **recipe,
-                     **({"cutout_images": len(cutout_images)} if cutout_images else {}),
+                     **({"cutouts_dir": str(cutouts)} if cutouts else {}),
                      "minutes": round(state["seconds"] / 60, 1), "precision": precision,
                      "onnx_max_abs_diff": diff,
                      "validation_synthetic": ap, "command": command or "app.py " + " ".join(sys.argv[1:]),
