@@ -26,9 +26,13 @@ from .crops import split_scene_dirs, train_val_split
 from .detector import DetectorSpec, decode, letterbox, normalise
 from .errors import UserError
 from .paths import work_dir
+from .visibility import mask_box
 
 MIN_VISIB = 0.1
 CUTOUT_MAX_SIDE = 160  # px a cut-out is kept at; pastes reach 40 % of the input width (128 px at 320)
+CUTOUT_SHARE = 0.5     # share of training images that get cut-outs when --cutouts is given
+# recipe keys added after checkpoints were first written, at the value a run without them records
+RECIPE_ADDED = {"cutouts": None, "cutout_share": 0.0}
 
 
 def load_detection_set(split_dir, spec: DetectorSpec, cache: Path | None = None, max_images=None, log=print):
@@ -176,8 +180,8 @@ def load_cutouts(folder, log=print) -> tuple[list[np.ndarray], str]:
         if (a > 127).sum() < 64 or (a > 0).all():
             skipped += 1
             continue
-        ys, xs = np.nonzero(a)
-        im = im[ys.min():ys.max() + 1, xs.min():xs.max() + 1]
+        x0, y0, w, h = mask_box(a)
+        im = im[y0:y0 + h, x0:x0 + w]
         im = np.dstack([(im[..., [2, 1, 0]].astype(np.uint16) * im[..., 3:] + 127) // 255, im[..., 3]]).astype(np.uint8)
         s = CUTOUT_MAX_SIDE / max(im.shape[:2])
         if s < 1:
@@ -299,6 +303,20 @@ def _init_weights(torch, path, width: int, classes: list[int]) -> dict:
         raise UserError(f"--init-from {path}: not a detector checkpoint ({type(e).__name__})") from None
 
 
+def _recipe_options(old: dict, new: dict) -> str:
+    """The options of recipe ``old`` that differ from ``new``, as a user would pass them (the
+    share of cut-outs goes unsaid where the old run had none)."""
+    out = []
+    for k, v in old.items():
+        if new.get(k) == v or (k == "cutout_share" and not old["cutouts"]):
+            continue
+        if k == "cutouts":
+            out.append("no --cutouts" if v is None else f"--cutouts (a folder of {v})")
+        else:
+            out.append(f"--{k.replace('_', '-')} {v}")
+    return ", ".join(out)
+
+
 def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32, input_w: int = 320,
                    input_h: int = 240, batch: int = 32, lr: float = 2e-3, seed: int = 0, max_images=None,
                    val_parts: int = 20, threads: int = 2, init_from=None, occlusion: float = 0.0,
@@ -346,17 +364,16 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     # network are in the key): otherwise one run silently mixes two augmentations or optimisers.
     # Not --minutes: a larger budget trains a finished run on (docs/models.md)
     recipe = {"batch": batch, "lr": lr, "seed": seed, "occlusion": occlusion, "paste_objects": paste_objects,
-              "cutouts": cutout_set, "cutout_share": (0.5 if cutout_share is None else cutout_share) if cutouts else 0.0}
+              **RECIPE_ADDED}
+    if cutouts:
+        recipe.update(cutouts=cutout_set, cutout_share=CUTOUT_SHARE if cutout_share is None else cutout_share)
     if ckpt.is_file():
         z = torch.load(ckpt, weights_only=True)  # tensors and plain containers only: no code runs
         # checkpoints written before the recipe was kept are trusted; keys added since have their off value
-        old = {"cutouts": None, "cutout_share": 0.0, **z.get("recipe", recipe)}
+        old = {**RECIPE_ADDED, **z.get("recipe", recipe)}
         if old != recipe:
-            diff = ", ".join(("no --cutouts" if old[k] is None else f"--cutouts (a folder of {old[k]})") if k == "cutouts"
-                             else f"--{k.replace('_', '-')} {old.get(k)}"
-                             for k in recipe if old.get(k) != recipe[k] and not (k == "cutout_share" and not old["cutouts"]))
-            raise UserError(f"{ckpt} was written by a run with {diff}: rerun with those options to resume it, "
-                            f"or delete it to start afresh")
+            raise UserError(f"{ckpt} was written by a run with {_recipe_options(old, recipe)}: rerun with those "
+                            f"options to resume it, or delete it to start afresh")
         if z.get("width") == width and z.get("classes") == spec.classes:
             model.load_state_dict(z["model"])
             opt.load_state_dict(z["opt"])
