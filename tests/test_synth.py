@@ -122,6 +122,8 @@ def test_bad_input(data_dir, tmp_path):
         generate(_cfg(data_dir, p_gloss=-0.1), tmp_path / "a", 2, workers=1, progress=False)
     with pytest.raises(UserError, match="distractor style"):
         generate(_cfg(data_dir, distractors="many"), tmp_path / "a", 2, workers=1, progress=False)
+    with pytest.raises(UserError, match="lighting 'sun'"):
+        generate(_cfg(data_dir, lighting="sun"), tmp_path / "a", 2, workers=1, progress=False)
     (tmp_path / "used").mkdir()
     (tmp_path / "used" / "synth_config.json").write_text("{}")
     with pytest.raises(UserError, match="not an empty folder"):
@@ -239,6 +241,35 @@ def test_gloss_changes_the_object_pixels_not_the_annotations(data_dir, tmp_path)
     on = np.any([cv2.imread(str(m), cv2.IMREAD_GRAYSCALE) > 0 for m in masks], axis=0)
     diff = np.abs(ia - ib).sum(axis=2)
     assert diff[on].mean() > 5 * max(diff[~on].mean(), 0.5)  # the objects changed, the background did not
+
+
+def test_overhead_lighting_changes_the_object_pixels_not_the_scenes(data_dir, tmp_path):
+    for light in ("camera", "overhead"):
+        generate(_cfg(data_dir, seed=5, p_table=0.0, lighting=light), tmp_path / light, 2, workers=1, progress=False)
+    a, b = tmp_path / "camera" / "000000", tmp_path / "overhead" / "000000"
+    for name in ("scene_gt.json", "scene_gt_info.json", "clean_crops.json"):
+        assert filecmp.cmp(a / name, b / name, shallow=False), name
+    for f in sorted((a / "clean").iterdir()):  # the reconstruction targets keep their neutral light
+        assert filecmp.cmp(f, b / "clean" / f.name, shallow=False), f.name
+    ia, ib = (cv2.imread(str(d / "rgb" / "000000.jpg")).astype(int) for d in (a, b))
+    masks = sorted((a / "mask_visib").glob("000000_*.png"))
+    on = np.any([cv2.imread(str(m), cv2.IMREAD_GRAYSCALE) > 0 for m in masks], axis=0)
+    diff = np.abs(ia - ib).sum(axis=2)
+    assert diff[on].mean() > 5 * max(diff[~on].mean(), 0.5)
+
+
+def test_overhead_key_light_shines_down_and_dominates():
+    from tracker.synth.randomise import sample_overhead_lights
+    down = np.array([0.0, 0.6, 0.8])  # a camera looking down at the table at about 53 degrees
+    rng = np.random.default_rng(0)
+    off = []
+    for _ in range(500):
+        lights, ambient = sample_overhead_lights(rng, down)
+        d, _, key = lights[0]
+        off.append(np.degrees(np.arccos(d @ down / np.linalg.norm(d))))
+        assert all(key > power for _, _, power in lights[1:])
+        assert np.all(ambient <= 0.25) and key >= 2.0
+    assert 10 < np.median(off) < 20 and max(off) < 90  # around straight down, never from below
 
 
 def test_an_interrupted_split_keeps_only_annotated_images(data_dir, tmp_path, monkeypatch):

@@ -95,7 +95,8 @@ def cmd_synth(args) -> int:
     obj_ids = args.obj_ids
     cfg = SynthConfig(models_dir=str(args.models), backgrounds_dir=str(args.backgrounds or shared_data() / "backgrounds"),
                       seed=args.seed, prior=args.prior, obj_ids=obj_ids, mesh_faces=args.mesh_faces, depth=args.depth,
-                      p_table=args.p_table, p_gloss=args.gloss, distractors=args.distractors)
+                      p_table=args.p_table, p_gloss=args.gloss, distractors=args.distractors,
+                      lighting=args.lighting)
     rep = generate(cfg, args.out, args.images, workers=args.workers, command="app.py " + " ".join(sys.argv[1:]))
     state = "INTERRUPTED after" if rep.interrupted else "wrote"
     print(f"{state} {rep.images} images, {rep.instances} instances ({rep.crops_visib_ge_0_1} with visib >= 0.1) "
@@ -420,6 +421,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="plain: 0-5 random primitives per image (as data made before); hard: 2-8 primitives "
                         "textured from the photos and tinted, half the time with the targets' colours; "
                         "household: as hard, half of the shapes mugs, cups and bottles")
+    s.add_argument("--lighting", choices=["camera", "overhead"], default="camera",
+                   help="camera: 1-3 lights from the camera's side (as data made before); overhead: a strong "
+                        "key light from above the table, a weak fill, little ambient (bright tops, dark sides)")
     s.add_argument("--obj-ids", type=id_list, help="comma-separated subset of the models' ids")
     s.add_argument("--workers", type=positive_int, default=2, help="render processes")
     s.add_argument("--depth", action="store_true", help="also write depth images (depth/, for VSD)")

@@ -36,7 +36,8 @@ from ..visibility import scene_visibility
 from . import priors
 from .randomise import (Backgrounds, camera_effects, cast_shadows, composite, distractor_meshes, household_meshes,
                         jitter_colours, target_palette, texture_from_photos, tint_distractors,
-                        list_backgrounds, sample_lights, sample_materials, table_surface)
+                        list_backgrounds, sample_lights, sample_materials, sample_overhead_lights,
+                        table_surface)
 
 CHUNK = 1000
 DEPTH_SCALE = 0.1  # mm per unit of the written depth PNGs (up to 6.5 m)
@@ -45,6 +46,7 @@ HARD_DISTRACTORS_PER_IMAGE = (2, 8)
 # per style: how many primitives and how many household shapes (mugs, cups, bottles)
 DISTRACTOR_SETS = {"plain": (12, 0), "hard": (36, 0), "household": (18, 18)}
 DISTRACTOR_STYLES = tuple(DISTRACTOR_SETS)
+LIGHTING_STYLES = ("camera", "overhead")
 PHOTO_DISTRACTORS = ("hard", "household")  # textured from the photos, tinted, 2-8 per image
 
 
@@ -72,6 +74,10 @@ class SynthConfig:
     # image, half the time with a target's colour (real clutter: yellow cups, white boxes);
     # "household": as "hard", with 18 of the 36 shapes mugs, cups and bottles
     distractors: str = "plain"
+    # "camera": 1-3 lights from the camera's side, ambient 0.15-0.5 (data made before);
+    # "overhead": a strong key light from above the table, a weak fill, little ambient, drawn
+    # from their own random stream (same scenes as "camera" with the same seed, other light)
+    lighting: str = "camera"
     crop_size: int = 128  # clean targets, rendered in the visibility window (visibility.WINDOW_PAD)
     jpeg_quality: tuple = (70, 95)
     obj_ids: list | None = None
@@ -185,6 +191,10 @@ def render_one(index: int, out_root: str) -> dict:
     scene, crop_r = _W["scene"], _W["crop"]
 
     lights, ambient = sample_lights(rng)
+    if cfg.lighting == "overhead":
+        # straight down in the scene: the table's -z, or the image's downward axis without a table
+        down_c = table[0] @ np.array([0.0, 0.0, -1.0]) if table is not None else np.array([0.0, 1.0, 0.3])
+        lights, ambient = sample_overhead_lights(np.random.default_rng([cfg.seed, index, 3]), down_c)
     if cfg.p_gloss > 0:
         sample_materials(scene, _W["obj_ids"], cfg.p_gloss, np.random.default_rng([cfg.seed, index, 1]))
     if cfg.distractors in PHOTO_DISTRACTORS:
@@ -287,6 +297,8 @@ def generate(cfg: SynthConfig, out_dir, n_images: int, workers: int = 2, batch: 
         raise UserError(f"--gloss must be between 0 and 1, got {cfg.p_gloss}")
     if cfg.distractors not in DISTRACTOR_STYLES:
         raise UserError(f"unknown distractor style '{cfg.distractors}' (choose from {', '.join(DISTRACTOR_STYLES)})")
+    if cfg.lighting not in LIGHTING_STYLES:
+        raise UserError(f"unknown lighting '{cfg.lighting}' (choose from {', '.join(LIGHTING_STYLES)})")
     list_backgrounds(cfg.backgrounds_dir)  # fail early, in the parent
     from ..meshes import load_models
     models = load_models(cfg.models_dir, cfg.obj_ids)  # fail early (and warn once) on bad meshes
