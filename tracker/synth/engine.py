@@ -190,7 +190,7 @@ def render_one(index: int, out_root: str) -> dict:
     inst, n_t, n_on_table, table = _sample_instances(rng, cfg)
     scene, crop_r = _W["scene"], _W["crop"]
 
-    lights, ambient = sample_lights(rng)
+    lights, ambient = sample_lights(rng)  # drawn either way: the scene's later draws stay the same
     if cfg.lighting == "overhead":
         # straight down in the scene: the table's -z, or the image's downward axis without a table
         down_c = table[0] @ np.array([0.0, 0.0, -1.0]) if table is not None else np.array([0.0, 1.0, 0.3])

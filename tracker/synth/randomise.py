@@ -257,6 +257,13 @@ def tint_distractors(renderer, dis_ids, palette: np.ndarray, rng: np.random.Gene
 # --------------------------------------------------------------------------- lights
 
 
+def _from_camera_side(rng: np.random.Generator, lift: float) -> np.ndarray:
+    """A random light direction shining away from the camera, onto the scene (z >= ``lift``)."""
+    d = rng.normal(size=3)
+    d[2] = abs(d[2]) + lift
+    return d
+
+
 def sample_lights(rng: np.random.Generator):
     """1-3 directional lights from the camera's side of the scene, random colour and
     intensity, plus an ambient level. Returns (lights, ambient RGB).
@@ -266,8 +273,7 @@ def sample_lights(rng: np.random.Generator):
     (most of it was pyrender's gamma on vertex colours, fixed in render.py)."""
     lights = []
     for i in range(int(rng.integers(1, 4))):
-        d = rng.normal(size=3)
-        d[2] = abs(d[2]) + 0.3  # mostly shining away from the camera, onto the scene
+        d = _from_camera_side(rng, 0.3)
         colour = 1.0 - rng.uniform(0, 0.25, 3)
         lights.append((d, colour, rng.uniform(0.5, 2.0) / (1 + 0.5 * i)))
     ambient = rng.uniform(0.15, 0.5) * (1.0 - rng.uniform(0, 0.15, 3))
@@ -286,9 +292,7 @@ def sample_overhead_lights(rng: np.random.Generator, down_c: np.ndarray):
     d = np.asarray(down_c, np.float64) / np.linalg.norm(down_c) + rng.normal(0, 0.2, 3)
     lights = [(d, 1.0 - rng.uniform(0, 0.15, 3), rng.uniform(2.0, 4.5))]
     if rng.random() < 0.7:
-        f = rng.normal(size=3)
-        f[2] = abs(f[2]) + 0.5
-        lights.append((f, 1.0 - rng.uniform(0, 0.25, 3), rng.uniform(0.3, 1.0)))
+        lights.append((_from_camera_side(rng, 0.5), 1.0 - rng.uniform(0, 0.25, 3), rng.uniform(0.3, 1.0)))
     ambient = rng.uniform(0.05, 0.25) * (1.0 - rng.uniform(0, 0.15, 3))
     return lights, ambient
 
