@@ -246,6 +246,8 @@ def test_crop_caches_are_named_for_their_split(tmp_path, monkeypatch):
     assert crops_cache_path("w", "a", 64, 0) == a  # the same folder however it is spelt
     assert crops_cache_path("w", tmp_path / "b", 64, 0) != a  # retrained on other data: not the old crops
     assert crops_cache_path("w", "a", 64, 0, jitter=False) != a != crops_cache_path("w", "a", 64, 1)
+    assert crops_cache_path("w", "a", 64, 0, jitter_scale=0.08) == a  # the default's name is unchanged
+    assert crops_cache_path("w", "a", 64, 0, jitter_scale=0.12) != a  # other box noise: other crops
 
 
 def test_distance_knn_equals_scikit_learns_brute_force():
@@ -422,6 +424,24 @@ def test_refit_heads_can_keep_the_regressors_and_add_the_distance_from_rotation(
     assert len(list((tiny_bundle.parent / "lmo.work").glob("codes_*.npy"))) == 2  # cached for the next refit
 
 
+def test_refit_heads_with_wider_box_noise_cuts_crops_on_wider_boxes(tiny_bundle, tmp_path):
+    from tracker.bundle import read_verified_manifest
+    from tracker.crops import JITTER_SCALE, bundle_training_crops
+    from tracker.train import refit_heads
+    split = tiny_bundle.parent / "split"
+    m = read_verified_manifest(tiny_bundle)
+    exact = bundle_training_crops(tiny_bundle, m, split, jitter=False, log=lambda *a: None)
+    spread = {}
+    for scale in (JITTER_SCALE, 0.3):
+        cs = bundle_training_crops(tiny_bundle, m, split, jitter_scale=scale, log=lambda *a: None)
+        spread[scale] = np.std(np.log(cs.box[:, 2:] / exact.box[:, 2:]))
+    assert spread[0.3] > 2 * spread[JITTER_SCALE], spread
+    m = refit_heads(tiny_bundle, split, out_dir=tmp_path / "wide", reg_minutes=0.01, jitter_scale=0.3,
+                    log=lambda *a: None)
+    assert m["heads"]["jitter_scale"] == 0.3
+    assert any("scale0.3" in p.name for p in (tiny_bundle.parent / "lmo.work").glob("codes_*.npy"))
+
+
 def test_refit_heads_keeps_the_encoder_and_writes_a_verified_bundle(tiny_bundle, tmp_path):
     from tracker.bundle import sha256
     from tracker.train import refit_heads
@@ -432,6 +452,6 @@ def test_refit_heads_keeps_the_encoder_and_writes_a_verified_bundle(tiny_bundle,
     assert m["heads"]["rotation_frame"] == "ray" and m["name"] == "refit"
     assert m["files"]["encoder.onnx"]["sha256"] == before["encoder.onnx"]
     est = PoseEstimator(tmp_path / "refit")  # hashes verified on load
-    assert est.head.rotation_frame == "ray"
+    assert est.head.rotation_frame == "ray" and m["heads"]["jitter_scale"] == 0.08
     with pytest.raises(UserError, match="synth_config"):
         refit_heads(tiny_bundle, tmp_path, out_dir=tmp_path / "x", log=lambda *a: None)

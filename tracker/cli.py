@@ -147,7 +147,8 @@ def cmd_train(args) -> int:
 def cmd_refit_heads(args) -> int:
     from .train import refit_heads
     m = refit_heads(args.model, args.data, out_dir=args.out, seed=args.seed, reg_minutes=args.reg_minutes,
-                    keep_regressors=args.keep_regressors, command="app.py " + " ".join(sys.argv[1:]))
+                    keep_regressors=args.keep_regressors, jitter_scale=args.jitter_scale,
+                    command="app.py " + " ".join(sys.argv[1:]))
     _print_validation(args.out or args.model, m)
     return 0
 
@@ -472,6 +473,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--keep-regressors", action="store_true",
                    help="keep the rotation, centre and distance regressors; fit only the distance-from-rotation "
                         "trees and the codebook")
+    s.add_argument("--jitter-scale", type=positive_float,
+                   help="log-size noise (standard deviation) of the jittered training boxes (default: the "
+                        "autoencoder's, 0.08)")
     s.add_argument("--seed", type=int, default=0)
     s.set_defaults(func=cmd_refit_heads)
 

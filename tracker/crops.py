@@ -76,7 +76,13 @@ def train_val_split(n: int, seed: int = 0, parts: int = 10) -> tuple[np.ndarray,
     return np.sort(perm[n_va:]), np.sort(perm[:n_va])
 
 
-def jitter_box(box, rng: np.random.Generator, shift: float = 0.06, scale: float = 0.08) -> np.ndarray:
+# Detector-like box noise for training crops: centre shift and log-size change, standard
+# deviations relative to the box's size.
+JITTER_SHIFT = 0.06
+JITTER_SCALE = 0.08
+
+
+def jitter_box(box, rng: np.random.Generator, shift: float = JITTER_SHIFT, scale: float = JITTER_SCALE) -> np.ndarray:
     """A detector-like box: centre moved and size changed by a few percent."""
     x, y, w, h = (float(v) for v in box)
     cx = x + w / 2 + rng.normal(0, shift) * w
@@ -95,8 +101,10 @@ def split_scene_dirs(split_dir) -> list[Path]:
 
 
 def build_training_crops(split_dir, size: int, seed: int = 0, jitter: bool = True,
-                         max_images: int | None = None, progress: bool = True) -> CropSet:
-    """Crops of every instance with visib >= 0.1 of a ``synth`` split."""
+                         max_images: int | None = None, progress: bool = True,
+                         jitter_scale: float = JITTER_SCALE) -> CropSet:
+    """Crops of every instance with visib >= 0.1 of a ``synth`` split; with ``jitter``, on
+    boxes jittered by :func:`jitter_box` (log-size noise ``jitter_scale``)."""
     rng = np.random.default_rng(seed)
     cols = {k: [] for k in CropSet.__dataclass_fields__}
     n_img = 0
@@ -118,7 +126,9 @@ def build_training_crops(split_dir, size: int, seed: int = 0, jitter: bool = Tru
                 vf = g.info.get("visib_fract", 0.0)
                 if vf < MIN_VISIB or g.info["bbox_visib"][2] <= 1 or g.info["bbox_visib"][3] <= 1:
                     continue
-                box = jitter_box(g.info["bbox_visib"], rng) if jitter else np.asarray(g.info["bbox_visib"], float)
+                box = np.asarray(g.info["bbox_visib"], float)
+                if jitter:
+                    box = jitter_box(box, rng, scale=jitter_scale)
                 crop = square_crop(box, size)
                 clean = cv2.imread(str(sdir / "clean" / f"{im_id:06d}_{k:06d}.png"))
                 if clean is None:
@@ -143,27 +153,29 @@ def build_training_crops(split_dir, size: int, seed: int = 0, jitter: bool = Tru
 
 
 def crops_cache_path(work_dir, data_dir, size: int, seed: int, max_images: int | None = None,
-                     jitter: bool = True) -> Path:
+                     jitter: bool = True, jitter_scale: float = JITTER_SCALE) -> Path:
     """Where training caches the crops of its split (``<bundle>.work/``), named for the split's
-    folder too, so that a bundle retrained on other data never loads the old crops."""
+    folder too, so that a bundle retrained on other data never loads the old crops, and for a
+    jitter other than the default."""
     key = hashlib.sha1(str(Path(data_dir).resolve()).encode()).hexdigest()[:10]
-    return Path(work_dir) / f"crops_{size}_seed{seed}_{max_images or 'all'}{'' if jitter else '_exact'}_{key}.npz"
+    boxes = "_exact" if not jitter else ("" if jitter_scale == JITTER_SCALE else f"_scale{jitter_scale:g}")
+    return Path(work_dir) / f"crops_{size}_seed{seed}_{max_images or 'all'}{boxes}_{key}.npz"
 
 
 def bundle_training_crops(model_dir, manifest: dict, data_dir, seed: int = 0, jitter: bool = True,
-                          log=print) -> CropSet:
+                          log=print, jitter_scale: float = JITTER_SCALE) -> CropSet:
     """The crops of ``data_dir`` at a bundle's input size: training's cached crops when the
     bundle was trained on this very split, else cut now (same seed, same boxes). Objects the
     bundle does not know are an error. ``jitter=False``: on the exact visible boxes."""
     size = int(manifest["input_size"])
-    cache = crops_cache_path(work_dir(model_dir), data_dir, size, seed, jitter=jitter)
+    cache = crops_cache_path(work_dir(model_dir), data_dir, size, seed, jitter=jitter, jitter_scale=jitter_scale)
     trained_on = manifest.get("training", {}).get("data")
     kind = "jittered" if jitter else "exact"
     if trained_on is not None and Path(trained_on).resolve() == Path(data_dir).resolve() and cache.is_file():
         cs = CropSet.load(cache)
         log(f"{len(cs)} crops on {kind} boxes (cached by training)")
     else:
-        cs = build_training_crops(data_dir, size, seed=seed, jitter=jitter)
+        cs = build_training_crops(data_dir, size, seed=seed, jitter=jitter, jitter_scale=jitter_scale)
         log(f"{len(cs)} crops on {kind} boxes (cut now)")
     unknown = sorted(set(np.unique(cs.obj_id).tolist()) - {int(o["id"]) for o in manifest["objects"]})
     if unknown:

@@ -365,16 +365,18 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
 
 def refit_heads(model_dir, data_dir, out_dir=None, seed: int = 0, reg_minutes: float = 5.0,
                 codebook_per_object: int = 1500, keep_regressors: bool = False, log=print,
-                command: str | None = None) -> dict:
+                command: str | None = None, jitter_scale: float | None = None) -> dict:
     """Refit a bundle's regressors and AAE codebook on its frozen encoder (ONNX), without
     retraining the autoencoder; writes the bundle to ``out_dir`` (default: in place).
     ``keep_regressors``: keep its rotation, centre and latent distance regressors and fit only
     the distance-from-rotation trees and the codebook (for a ray-frame bundle made before the
-    trees existed)."""
+    trees existed). ``jitter_scale``: the log-size noise of the jittered boxes (default
+    :data:`~tracker.crops.JITTER_SCALE`, what the autoencoder trained on)."""
     _torch()  # the MLPs train with torch
     from .bundle import read_verified_manifest, write_manifest
-    from .crops import bundle_training_crops, crops_cache_path, train_val_split
+    from .crops import JITTER_SCALE, bundle_training_crops, crops_cache_path, train_val_split
     from .estimator import PoseEstimator
+    jitter_scale = JITTER_SCALE if jitter_scale is None else jitter_scale
     t0 = time.perf_counter()
     est = PoseEstimator(model_dir, threads=2, single_thread_math=False)
     work = work_dir(est.bundle.root)
@@ -383,7 +385,8 @@ def refit_heads(model_dir, data_dir, out_dir=None, seed: int = 0, reg_minutes: f
         """The encoder's codes of ``crops``, cached per encoder (its hash) and split."""
         m = est.bundle.manifest
         encoder_sha = m["files"][m["artefacts"]["encoder"]]["sha256"][:10]
-        path = work / f"codes_{encoder_sha}_{crops_cache_path(work, data_dir, est.size, seed, jitter=jitter).stem}.npy"
+        stem = crops_cache_path(work, data_dir, est.size, seed, jitter=jitter, jitter_scale=jitter_scale).stem
+        path = work / f"codes_{encoder_sha}_{stem}.npy"
         if path.is_file():
             mu = np.load(path, allow_pickle=False)
             if len(mu) == len(crops):
@@ -397,7 +400,7 @@ def refit_heads(model_dir, data_dir, out_dir=None, seed: int = 0, reg_minutes: f
     out = Path(out_dir) if out_dir else src.root
     if not (Path(data_dir) / "synth_config.json").is_file():
         raise UserError(f"{data_dir}: no synth_config.json; make training data with 'app.py synth'")
-    cs = bundle_training_crops(src.root, src.manifest, data_dir, seed=seed, log=log)
+    cs = bundle_training_crops(src.root, src.manifest, data_dir, seed=seed, log=log, jitter_scale=jitter_scale)
     cs_exact = bundle_training_crops(src.root, src.manifest, data_dir, seed=seed, jitter=False, log=log)
     mu, mu_exact = codes(cs, True), codes(cs_exact, False)
     log(f"codes of {len(cs) + len(cs_exact)} crops in {time.perf_counter() - t0:.0f} s")
@@ -430,7 +433,7 @@ def refit_heads(model_dir, data_dir, out_dir=None, seed: int = 0, reg_minutes: f
     m["heads"] = {"rotation_frame": head.rotation_frame, "distance": dist_info.get("head", old.get("distance")),
                   "distance_val_te_median_mm": dist_info.get("val_te_median_mm", old.get("distance_val_te_median_mm")),
                   "distance_by_rotation": dist_info["by_rotation"], "kept_regressors": keep is not None,
-                  "boxes": "jittered and exact",
+                  "boxes": "jittered and exact", "jitter_scale": jitter_scale,
                   "data": str(data_dir), "seed": seed,
                   "reg_minutes": reg_minutes, "minutes": round((time.perf_counter() - t0) / 60, 1),
                   "command": command or "app.py " + " ".join(sys.argv[1:]),
