@@ -200,3 +200,23 @@ def test_ray_rotation_turns_the_camera_to_look_at_the_object(u, v, q):
     both = G.ray_rotation(np.array([[u, v], [K[0, 2], K[1, 2]]]), np.stack([K, K]))
     assert np.allclose(both[0], R_ray) and np.allclose(both[1], np.eye(3))
     assert np.allclose(R_ray @ (R_ray.T @ R), R)
+
+
+def test_mean_pose_of_equal_estimates_is_that_pose():
+    R = Rotation.random(3, random_state=1).as_matrix()
+    t = np.array([[10.0, -20.0, 800.0], [0.0, 5.0, 1200.0], [-40.0, 30.0, 650.0]])
+    Rm, tm = G.mean_pose(np.stack([R, R, R]), np.stack([t, t, t]))
+    assert np.allclose(Rm, R, atol=1e-9) and np.allclose(tm, t)
+
+
+def test_mean_pose_halves_opposite_turns_and_averages_distance_along_the_ray():
+    base = Rotation.from_euler("xyz", [30, -10, 60], degrees=True)
+    turns = [Rotation.from_rotvec([0, 0, s * np.radians(20)]) for s in (1, -1)]
+    R = np.stack([(base * q).as_matrix()[None] for q in turns])  # (2, 1, 3, 3)
+    ray = np.array([0.1, -0.05, 1.0])
+    t = np.stack([(500 * ray)[None], (2000 * ray)[None]])
+    Rm, tm = G.mean_pose(R, t)
+    assert G.rotation_error_deg(Rm[0], base.as_matrix()) < 1e-4  # arccos: ~1e-6 deg of rounding
+    assert np.allclose(tm[0], 1000 * ray)  # the geometric mean of 500 and 2000, on the same ray
+    with pytest.raises(ValueError):
+        G.mean_pose(R, t[:, :, :2])

@@ -455,3 +455,37 @@ def test_refit_heads_keeps_the_encoder_and_writes_a_verified_bundle(tiny_bundle,
     assert est.head.rotation_frame == "ray" and m["heads"]["jitter_scale"] == 0.08
     with pytest.raises(UserError, match="synth_config"):
         refit_heads(tiny_bundle, tmp_path, out_dir=tmp_path / "x", log=lambda *a: None)
+
+
+def test_join_heads_averages_refitted_heads_and_refuses_another_encoder(tiny_bundle, tmp_path):
+    from tracker.bundle import write_manifest
+    from tracker.geometry import mean_pose
+    from tracker.head_ensemble import join_heads
+    from tracker.regressors import HeadEnsemble
+    from tracker.train import refit_heads
+    split = tiny_bundle.parent / "split"
+    refit_heads(tiny_bundle, split, out_dir=tmp_path / "second", reg_minutes=0.01, seed=1, log=lambda *a: None)
+    m = join_heads(tiny_bundle, [tmp_path / "second"], out_dir=tmp_path / "joined", log=lambda *a: None)
+    assert m["heads"]["ensemble"]["members"] == 2
+    joined = PoseEstimator(tmp_path / "joined")  # hashes verified on load
+    assert isinstance(joined.head, HeadEnsemble)
+    members = [PoseEstimator(p).head for p in (tiny_bundle, tmp_path / "second")]
+    scene = load_scene(split / "000000")
+    im_id = sorted(scene.gt)[0]
+    dets = [Detection(g.obj_id, np.asarray(g.info["bbox_visib"], float)) for g in scene.gt[im_id]
+            if g.info["bbox_visib"][2] > 1 and g.info["bbox_visib"][3] > 1]
+    img, K = scene.read_rgb(im_id), scene.K(im_id)
+    poses = joined.estimate(img, K, dets)
+    mu = joined.encode(joined.crops(img, np.array([d.box for d in dets])), [d.obj_id for d in dets])
+    preds = [h.predict(mu, [d.obj_id for d in dets], np.array([d.box for d in dets]), K) for h in members]
+    _, t_mean = mean_pose(np.stack([p[0] for p in preds]), np.stack([p[1] for p in preds]))
+    assert np.allclose(np.stack([p.t for p in poses]), t_mean, rtol=1e-5)
+    assert joined.estimate(img, K, dets, mode="aae")  # the codebook still answers
+    other = tmp_path / "other"
+    shutil.copytree(tmp_path / "second", other)
+    with open(other / "encoder.onnx", "ab") as f:
+        f.write(b"\0")  # another encoder, hashed anew: a consistent bundle, but not the same network
+    write_manifest(other, {k: v for k, v in json.loads((other / "manifest.json").read_text()).items()
+                           if k not in ("files", "format")})
+    with pytest.raises(UserError, match="encoder"):
+        join_heads(tiny_bundle, [other], out_dir=tmp_path / "bad", log=lambda *a: None)

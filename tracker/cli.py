@@ -153,6 +153,12 @@ def cmd_refit_heads(args) -> int:
     return 0
 
 
+def cmd_join_heads(args) -> int:
+    from .head_ensemble import join_heads
+    join_heads(args.model, args.heads_from, out_dir=args.out, command="app.py " + " ".join(sys.argv[1:]))
+    return 0
+
+
 def cmd_train_detector(args) -> int:
     from .detector_train import train_detector
     d = train_detector(args.data, args.model, minutes=args.minutes, width=args.width, input_w=args.input[0],
@@ -478,6 +484,13 @@ def build_parser() -> argparse.ArgumentParser:
                         "autoencoder's, 0.08)")
     s.add_argument("--seed", type=int, default=0)
     s.set_defaults(func=cmd_refit_heads)
+
+    s = sub.add_parser("join-heads", help="one pose head averaging the head sets of bundles that share an encoder")
+    s.add_argument("--model", required=True, help="bundle folder whose encoder, codebook and detector are kept")
+    s.add_argument("--from", dest="heads_from", nargs="+", required=True, metavar="DIR",
+                   help="bundles with the same encoder (e.g. from 'refit-heads --out DIR') whose heads join")
+    s.add_argument("--out", help="write the joined bundle here (default: in place)")
+    s.set_defaults(func=cmd_join_heads)
 
     s = sub.add_parser("train-detector", help="train the 2D detector on synth scenes and add it to a bundle")
     s.add_argument("--data", required=True, help="a 'synth' split")

@@ -24,8 +24,8 @@ from sklearn.base import BaseEstimator, RegressorMixin
 from sklearn.preprocessing import StandardScaler
 
 from .errors import UserError
-from .geometry import (box_features, centre_from_box_offset, matrix_from_rot6d, ray_rotation, rot6d_from_matrix,
-                       translation_from_centre)
+from .geometry import (box_features, centre_from_box_offset, matrix_from_rot6d, mean_pose, ray_rotation,
+                       rot6d_from_matrix, translation_from_centre)
 
 
 def _silu(x):
@@ -347,3 +347,41 @@ class PoseHead:
         else:
             t = np.stack([translation_from_centre(c, z, k) for c, z, k in zip(centre, tz, K)])
         return R, t
+
+
+class HeadEnsemble(PoseHead):
+    """Several head sets fitted on the same frozen encoder (``app.py join-heads``), their poses
+    averaged by :func:`tracker.geometry.mean_pose`. A symmetric object's estimates may differ by
+    one of its symmetries: each member's rotation is first turned by the symmetry that brings it
+    closest to the first member's. The AAE mode is the first member's with the bundle's codebook.
+    ``symmetries``: {obj_id: (S, 3, 3) model-frame symmetry rotations, identity first}."""
+
+    def __init__(self, members, symmetries: dict):
+        members = [m for h in members for m in (h.members if isinstance(h, HeadEnsemble) else [h])]
+        if not members:
+            raise ValueError("an ensemble needs at least one head")
+        for h in members:
+            if h.obj_ids != members[0].obj_ids or h.rotation_frame != members[0].rotation_frame:
+                raise UserError(f"heads for objects {h.obj_ids} ({h.rotation_frame} frame) cannot be averaged with "
+                                f"heads for {members[0].obj_ids} ({members[0].rotation_frame} frame)")
+        self.members = members
+        self.obj_ids = list(members[0].obj_ids)
+        self.rotation_frame = members[0].rotation_frame
+        self.rotation = self.centre = self.distance = self.codebook = None
+        self.symmetries = {int(o): np.asarray(symmetries.get(int(o), np.eye(3)[None]), np.float64).reshape(-1, 3, 3)
+                           for o in self.obj_ids}
+
+    def predict(self, mu, obj_ids, boxes, K, mode: str = "regression"):
+        if mode == "aae":
+            first = self.members[0]
+            first.codebook = self.codebook
+            return first.predict(mu, obj_ids, boxes, K, mode=mode)
+        Rs, ts = zip(*(h.predict(mu, obj_ids, boxes, K, mode=mode) for h in self.members))
+        Rs = np.stack(Rs)
+        for n, o in enumerate(obj_ids):
+            S = self.symmetries[int(o)]
+            if len(S) > 1:  # the symmetry of each member's estimate nearest the first member's
+                turned = Rs[1:, n, None] @ S[None]  # (M - 1, S, 3, 3)
+                best = np.argmax(np.einsum("ij,msij->ms", Rs[0, n], turned), axis=1)
+                Rs[1:, n] = turned[np.arange(len(best)), best]
+        return mean_pose(Rs, np.stack(ts))

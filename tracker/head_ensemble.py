@@ -1,0 +1,57 @@
+"""``app.py join-heads``: one bundle whose pose head averages the head sets of several bundles
+that share its encoder (:class:`tracker.regressors.HeadEnsemble`). No torch: the members are
+fitted already (``train``, ``refit-heads``)."""
+from __future__ import annotations
+
+import shutil
+import sys
+import time
+from pathlib import Path
+
+from .bop import load_models_info, symmetry_transforms
+from .bundle import open_bundle, read_verified_manifest, write_manifest
+from .errors import UserError
+from .regressors import HeadEnsemble, PoseHead
+
+
+def join_heads(model_dir, others, out_dir=None, log=print, command: str | None = None) -> dict:
+    """Write ``out_dir`` (default: ``model_dir`` in place): ``model_dir``'s bundle with a pose head
+    that averages its own head set and those of ``others``. Every bundle must have the very same
+    encoder (by SHA-256) and objects; the codebook, detector and meshes stay ``model_dir``'s."""
+    src = open_bundle(model_dir)
+    enc = src.manifest["artefacts"]["encoder"]
+    enc_sha = src.manifest["files"][enc]["sha256"]
+    heads, names = [src.load_joblib("pose_head", PoseHead)], [str(model_dir)]
+    for o in others:
+        b = open_bundle(o)
+        if b.manifest["files"].get(b.manifest["artefacts"]["encoder"], {}).get("sha256") != enc_sha:
+            raise UserError(f"{o}: its encoder is not {model_dir}'s (SHA-256 differs); only heads fitted on the "
+                            "same encoder can be averaged (make them with 'app.py refit-heads --model "
+                            f"{model_dir} --out DIR')")
+        heads.append(b.load_joblib("pose_head", PoseHead))
+        names.append(str(o))
+    info = load_models_info(src.path("models_info"))
+    obj_ids = heads[0].obj_ids
+    missing = [o for o in obj_ids if o not in info]
+    if missing:
+        raise UserError(f"{model_dir}: its models_info lacks object(s) {missing}")
+    syms = {o: symmetry_transforms(info[o], continuous_steps=36)[:, :3, :3] for o in obj_ids}
+    ensemble = HeadEnsemble(heads, syms)
+    out = Path(out_dir) if out_dir else src.root
+    if out.resolve() != src.root.resolve():
+        if out.exists():
+            shutil.rmtree(out)
+        shutil.copytree(src.root, out)
+    import joblib
+    joblib.dump(ensemble, out / src.manifest["artefacts"]["pose_head"], compress=3)
+    m = {k: v for k, v in src.manifest.items() if k not in ("files", "format")}
+    m["name"] = out.name
+    m["heads"] = {**src.manifest.get("heads", {}),
+                  "ensemble": {"members": len(ensemble.members), "from": names,
+                               "note": "validation_synthetic is the first member's",
+                               "command": command or "app.py " + " ".join(sys.argv[1:]),
+                               "created": time.strftime("%Y-%m-%d %H:%M:%S")}}
+    write_manifest(out, m)
+    manifest = read_verified_manifest(out)
+    log(f"bundle {out}: a pose head averaging {len(ensemble.members)} head sets")
+    return manifest
