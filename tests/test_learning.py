@@ -489,3 +489,5 @@ def test_join_heads_averages_refitted_heads_and_refuses_another_encoder(tiny_bun
                            if k not in ("files", "format")})
     with pytest.raises(UserError, match="encoder"):
         join_heads(tiny_bundle, [other], out_dir=tmp_path / "bad", log=lambda *a: None)
+    with pytest.raises(UserError, match="averages 2 head sets"):
+        refit_heads(tmp_path / "joined", split, out_dir=tmp_path / "kept", keep_regressors=True, log=lambda *a: None)

@@ -18,7 +18,7 @@ from .geometry import (box_offset_of_centre, centre_from_box_offset, focal_mean,
                        translation_from_centre)
 from .overlay import LMO_NAMES
 from .paths import work_dir
-from .regressors import (Codebook, DistanceKNN, NumpyMLP, PoseHead, apparent_size, centre_inputs,
+from .regressors import (Codebook, DistanceKNN, HeadEnsemble, NumpyMLP, PoseHead, apparent_size, centre_inputs,
                          distance_inputs, rotation_inputs)
 
 KNN_K = (1, 2, 3, 5, 8, 12, 20)
@@ -410,6 +410,9 @@ def refit_heads(model_dir, data_dir, out_dir=None, seed: int = 0, reg_minutes: f
     cs_h, mu_h, tr_h, va_h = with_exact_boxes(cs, mu, cs_exact, mu_exact, tr, va)
     models_info = load_models_info(src.path("models_info"))
     keep = est.head if keep_regressors else None
+    if keep is not None and isinstance(keep, HeadEnsemble):
+        raise UserError(f"{model_dir}: its pose head averages {len(keep.members)} head sets ('join-heads'); "
+                        "--keep-regressors needs one: refit without it, or keep the regressors of a member bundle")
     if keep is not None and keep.rotation_frame != "ray":
         raise UserError(f"{model_dir}: its regressors predict camera-frame rotations; refit them all "
                         "(without --keep-regressors)")
