@@ -14,6 +14,15 @@ from .errors import UserError
 from .regressors import HeadEnsemble, PoseHead
 
 
+def _origin(path, manifest: dict) -> dict:
+    """Where a member's head set came from: its bundle and the command that fitted it."""
+    heads = manifest.get("heads", {})
+    if "ensemble" in heads:
+        return {"bundle": str(path), "ensemble": heads["ensemble"]}
+    return {"bundle": str(path), "command": heads.get("command", manifest.get("command")),
+            "jitter_scale": heads.get("jitter_scale"), "seed": heads.get("seed")}
+
+
 def join_heads(model_dir, others, out_dir=None, log=print, command: str | None = None) -> dict:
     """Write ``out_dir`` (default: ``model_dir`` in place): ``model_dir``'s bundle with a pose head
     that averages its own head set and those of ``others``. Every bundle must have the very same
@@ -21,7 +30,7 @@ def join_heads(model_dir, others, out_dir=None, log=print, command: str | None =
     src = open_bundle(model_dir)
     enc = src.manifest["artefacts"]["encoder"]
     enc_sha = src.manifest["files"][enc]["sha256"]
-    heads, names = [src.load_joblib("pose_head", PoseHead)], [str(model_dir)]
+    heads, names = [src.load_joblib("pose_head", PoseHead)], [_origin(model_dir, src.manifest)]
     for o in others:
         b = open_bundle(o)
         if b.manifest["files"].get(b.manifest["artefacts"]["encoder"], {}).get("sha256") != enc_sha:
@@ -29,7 +38,7 @@ def join_heads(model_dir, others, out_dir=None, log=print, command: str | None =
                             "same encoder can be averaged (make them with 'app.py refit-heads --model "
                             f"{model_dir} --out DIR')")
         heads.append(b.load_joblib("pose_head", PoseHead))
-        names.append(str(o))
+        names.append(_origin(o, b.manifest))
     info = load_models_info(src.path("models_info"))
     obj_ids = heads[0].obj_ids
     missing = [o for o in obj_ids if o not in info]
