@@ -379,6 +379,9 @@ def refit_heads(model_dir, data_dir, out_dir=None, seed: int = 0, reg_minutes: f
     jitter_scale = JITTER_SCALE if jitter_scale is None else jitter_scale
     t0 = time.perf_counter()
     est = PoseEstimator(model_dir, threads=2, single_thread_math=False)
+    if keep_regressors and isinstance(est.head, HeadEnsemble):
+        raise UserError(f"{model_dir}: its pose head averages {len(est.head.members)} head sets ('join-heads'); "
+                        "--keep-regressors needs one: refit without it, or keep the regressors of a member bundle")
     work = work_dir(est.bundle.root)
 
     def codes(crops, jitter: bool) -> np.ndarray:
@@ -410,9 +413,6 @@ def refit_heads(model_dir, data_dir, out_dir=None, seed: int = 0, reg_minutes: f
     cs_h, mu_h, tr_h, va_h = with_exact_boxes(cs, mu, cs_exact, mu_exact, tr, va)
     models_info = load_models_info(src.path("models_info"))
     keep = est.head if keep_regressors else None
-    if keep is not None and isinstance(keep, HeadEnsemble):
-        raise UserError(f"{model_dir}: its pose head averages {len(keep.members)} head sets ('join-heads'); "
-                        "--keep-regressors needs one: refit without it, or keep the regressors of a member bundle")
     if keep is not None and keep.rotation_frame != "ray":
         raise UserError(f"{model_dir}: its regressors predict camera-frame rotations; refit them all "
                         "(without --keep-regressors)")
