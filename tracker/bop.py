@@ -292,6 +292,12 @@ def symmetry_transforms(info: dict, continuous_steps: int = 360) -> np.ndarray:
     return np.array([c @ d for d in disc for c in conts])
 
 
+def symmetry_rotations(info: dict, continuous_steps: int = 36) -> np.ndarray:
+    """(S, 3, 3): the rotations of :func:`symmetry_transforms`, identity first, continuous
+    symmetries in ``continuous_steps`` steps: the set the pose heads are trained and averaged with."""
+    return symmetry_transforms(info, continuous_steps=continuous_steps)[:, :3, :3]
+
+
 # --------------------------------------------------------------------------- results CSV
 
 RESULT_HEADER = ["scene_id", "im_id", "obj_id", "score", "R", "t", "time"]

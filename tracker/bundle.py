@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -97,6 +98,17 @@ class Bundle:
     def manifest_sha256(self) -> str:
         """The manifest's hash: it names every file's hash, so it stands for the whole bundle."""
         return sha256(self.root / MANIFEST)
+
+
+def copy_bundle(src_root, out) -> Path:
+    """``out`` holding a copy of the bundle at ``src_root`` (what was there is replaced), or
+    ``src_root`` itself when ``out`` is that folder: where a job writes a changed bundle."""
+    src_root, out = Path(src_root), Path(out)
+    if out.resolve() != src_root.resolve():
+        if out.exists():
+            shutil.rmtree(out)
+        shutil.copytree(src_root, out)
+    return out
 
 
 def update_manifest(bundle_dir, change) -> dict:

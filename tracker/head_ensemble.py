@@ -3,13 +3,12 @@ that share its encoder (:class:`tracker.regressors.HeadEnsemble`). No torch: the
 fitted already (``train``, ``refit-heads``)."""
 from __future__ import annotations
 
-import shutil
 import sys
 import time
 from pathlib import Path
 
-from .bop import load_models_info, symmetry_transforms
-from .bundle import open_bundle, read_verified_manifest, write_manifest
+from .bop import load_models_info, symmetry_rotations
+from .bundle import copy_bundle, open_bundle, read_verified_manifest, write_manifest
 from .errors import UserError
 from .regressors import HeadEnsemble, PoseHead
 
@@ -44,13 +43,10 @@ def join_heads(model_dir, others, out_dir=None, log=print, command: str | None =
     missing = [o for o in obj_ids if o not in info]
     if missing:
         raise UserError(f"{model_dir}: its models_info lacks object(s) {missing}")
-    syms = {o: symmetry_transforms(info[o], continuous_steps=36)[:, :3, :3] for o in obj_ids}
+    syms = {o: symmetry_rotations(info[o]) for o in obj_ids}
     ensemble = HeadEnsemble(heads, syms)
     out = Path(out_dir) if out_dir else src.root
-    if out.resolve() != src.root.resolve():
-        if out.exists():
-            shutil.rmtree(out)
-        shutil.copytree(src.root, out)
+    copy_bundle(src.root, out)
     import joblib
     joblib.dump(ensemble, out / src.manifest["artefacts"]["pose_head"], compress=3)
     m = {k: v for k, v in src.manifest.items() if k not in ("files", "format")}

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .bop import load_models_info, symmetry_transforms
+from .bop import load_models_info, symmetry_rotations
 from .errors import UserError
 from .geometry import (box_offset_of_centre, centre_from_box_offset, focal_mean, rotation_error_deg,
                        translation_from_centre)
@@ -44,7 +44,7 @@ def _torch():
 
 def _sym_rotations(obj_idx, obj_ids, models_info) -> np.ndarray:
     """(N, S, 3, 3): each sample's symmetry rotations, identity first, padded with identity."""
-    per = [symmetry_transforms(models_info[o], continuous_steps=36)[:, :3, :3] for o in obj_ids]
+    per = [symmetry_rotations(models_info[o]) for o in obj_ids]
     S = max(len(p) for p in per)
     per = [np.concatenate([p, np.repeat(np.eye(3)[None], S - len(p), 0)]) for p in per]
     return np.stack(per)[obj_idx].astype(np.float32)
@@ -373,7 +373,7 @@ def refit_heads(model_dir, data_dir, out_dir=None, seed: int = 0, reg_minutes: f
     trees existed). ``jitter_scale``: the log-size noise of the jittered boxes (default
     :data:`~tracker.crops.JITTER_SCALE`, what the autoencoder trained on)."""
     _torch()  # the MLPs train with torch
-    from .bundle import read_verified_manifest, write_manifest
+    from .bundle import copy_bundle, read_verified_manifest, write_manifest
     from .crops import JITTER_SCALE, bundle_training_crops, crops_cache_path, train_val_split
     from .estimator import PoseEstimator
     jitter_scale = JITTER_SCALE if jitter_scale is None else jitter_scale
@@ -419,10 +419,7 @@ def refit_heads(model_dir, data_dir, out_dir=None, seed: int = 0, reg_minutes: f
     head, codebook, dist_info, val = fit_heads(mu_h, cs_h, est.obj_ids, models_info, tr_h, va_h, rng,
                                                reg_minutes=reg_minutes, codebook_per_object=codebook_per_object,
                                                seed=seed, n_jittered=len(cs), keep=keep, log=log)
-    if out.resolve() != src.root.resolve():
-        if out.exists():
-            shutil.rmtree(out)
-        shutil.copytree(src.root, out)
+    copy_bundle(src.root, out)
     import joblib
     joblib.dump(head, out / src.manifest["artefacts"]["pose_head"], compress=3)
     joblib.dump(codebook, out / src.manifest["artefacts"]["codebook"], compress=3)
