@@ -377,3 +377,48 @@ def test_loop_with_the_detector_on_the_bundled_recording(tiny_detector_bundle, t
     assert s["accuracy"]["n_gt"] > 20  # scored against the recording's ground truth
     assert len((out / "timings.csv").read_text().splitlines()) == 4
     assert all(e.im_id in (3, 8, 17) for e in read_results(out / "poses.csv"))
+
+
+def test_join_detectors_averages_the_networks_and_quantises_them(tiny_detector_bundle, tiny_bundle, lmo_dev, tmp_path):
+    pytest.importorskip("onnx")
+    import onnx
+    from tracker.bundle import open_bundle, update_manifest
+    from tracker.detector import Detector, letterbox, normalise
+    from tracker.detector_ensemble import join_detectors
+    from tracker.detector_train import train_detector
+    quiet = dict(log=lambda *a: None)
+    split = tiny_bundle.parent / "split"
+    second = tmp_path / "second"
+    shutil.copytree(tiny_bundle, second)
+    train_detector(split, second, minutes=0.01, width=4, batch=2, seed=1, **quiet)
+    m = join_detectors(tiny_detector_bundle, [second], out_dir=tmp_path / "joined", **quiet)
+    ens = m["detector"]["ensemble"]
+    assert ens["members"] == 2 and ens["from"][1]["bundle"] == str(second)
+    frame = lmo_dev.read_rgb(lmo_dev.im_ids[0])
+
+    def maps(bundle):
+        d = Detector(open_bundle(bundle))  # hashes verified, classes and output channels checked
+        x = normalise(letterbox(frame, d.spec.input_w, d.spec.input_h, d.spec.pad_value)[0][None], d.spec)
+        return d.session.run(None, {d.input_name: x})[0]
+    a, b, joined = maps(tiny_detector_bundle), maps(second), maps(tmp_path / "joined")
+    assert not np.allclose(a, b, atol=1e-3)  # two networks, so their mean is neither
+    assert np.abs(joined - (a + b) / 2).max() < 1e-5
+
+    q = join_detectors(tiny_detector_bundle, [second], out_dir=tmp_path / "int8", int8_data=split,
+                       calibration_images=3, **quiet)
+    assert q["detector"]["int8"]["calibration_images"] == 3
+    ops = {n.op_type for n in onnx.load(str(tmp_path / "int8" / "detector.onnx")).graph.node}
+    assert {"QuantizeLinear", "DequantizeLinear", "Mean"} <= ops
+    C = len(q["detector"]["classes"])
+    assert np.abs(maps(tmp_path / "int8")[0, :C] - joined[0, :C]).max() < 0.1
+    assert all(d.obj_id in q["detector"]["classes"] for d in Detector(open_bundle(tmp_path / "int8"))(frame))
+
+    with pytest.raises(UserError, match="joined or quantised already"):
+        join_detectors(tmp_path / "joined", [second], out_dir=tmp_path / "again", **quiet)
+    with pytest.raises(UserError, match="has no detector"):
+        join_detectors(tiny_detector_bundle, [tiny_bundle], out_dir=tmp_path / "none", **quiet)
+    other = tmp_path / "other"
+    shutil.copytree(second, other)
+    update_manifest(other, lambda man: man["detector"].update(input_w=256))
+    with pytest.raises(UserError, match="input_w"):
+        join_detectors(tiny_detector_bundle, [other], out_dir=tmp_path / "bad", **quiet)

@@ -159,6 +159,14 @@ def cmd_join_heads(args) -> int:
     return 0
 
 
+def cmd_join_detectors(args) -> int:
+    from .detector_ensemble import join_detectors
+    extra = {"calibration_images": args.calibration_images} if args.calibration_images else {}
+    join_detectors(args.model, args.detectors_from, out_dir=args.out, int8_data=args.int8,
+                   command="app.py " + " ".join(sys.argv[1:]), **extra)
+    return 0
+
+
 def cmd_train_detector(args) -> int:
     from .detector_train import train_detector
     d = train_detector(args.data, args.model, minutes=args.minutes, width=args.width, input_w=args.input[0],
@@ -491,6 +499,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="bundles with the same encoder (e.g. from 'refit-heads --out DIR') whose heads join")
     s.add_argument("--out", help="write the joined bundle here (default: in place)")
     s.set_defaults(func=cmd_join_heads)
+
+    s = sub.add_parser("join-detectors", help="one detector averaging the detectors of several bundles (optionally int8)")
+    s.add_argument("--model", required=True, help="bundle folder that gets the joined detector (its own is the first member)")
+    s.add_argument("--from", dest="detectors_from", nargs="+", required=True, metavar="DIR",
+                   help="bundles whose detectors (same classes, input and normalisation) join")
+    s.add_argument("--out", help="write the joined bundle here (default: in place)")
+    s.add_argument("--int8", metavar="SPLIT", help="quantise the joined detector to int8, calibrated on this synth split")
+    s.add_argument("--calibration-images", type=positive_int,
+                   help="images of the --int8 split to calibrate on, spread evenly over it (default: 200)")
+    s.set_defaults(func=cmd_join_detectors)
 
     s = sub.add_parser("train-detector", help="train the 2D detector on synth scenes and add it to a bundle")
     s.add_argument("--data", required=True, help="a 'synth' split")
