@@ -28,6 +28,13 @@ def test_help_lists_the_commands():
         assert f"    {c}" in p.stdout
 
 
+def test_join_detectors_bad_input_is_a_one_line_error(tmp_path):
+    p = run("join-detectors", "--model", REPO / "models" / "lmo", "--from", tmp_path, "--out", tmp_path / "j")
+    assert_one_line_error(p)
+    assert "joined or quantised already" in p.stderr  # the bundled detector is a joined one
+    assert not (tmp_path / "j").exists()
+
+
 def test_bad_bundle_and_bad_source_are_one_line_errors(tmp_path, data_dir):
     p = run("track", "--source", data_dir / "lmo" / "dev", "--model", tmp_path / "no-bundle", "--max-frames", 1)
     assert_one_line_error(p)

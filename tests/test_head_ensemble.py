@@ -43,3 +43,52 @@ def test_ensembles_flatten_and_refuse_heads_of_other_objects():
     from tracker.errors import UserError
     with pytest.raises(UserError, match="cannot be averaged"):
         HeadEnsemble([a, FixedHead(np.eye(3), [0, 0, 1], obj_ids=(1,))], {})
+
+
+def test_stacked_trees_and_mlps_give_each_members_prediction():
+    from tracker.regressors import BoostedTrees, NumpyMLP, StackedMLP, StackedTrees
+    rng = np.random.default_rng(1)
+    X = rng.normal(size=(800, 5))
+    forests = [BoostedTrees(max_iter=n, max_leaf_nodes=leaves, seed=s).fit(X, np.sin(X[:, 0] * s) + X[:, s])
+               for n, leaves, s in ((30, 63, 1), (12, 7, 2), (45, 31, 3))]  # unequal counts and depths
+    Xt = rng.normal(size=(3, 9, 5)) * 1.5
+    Xt[1, :3, 2] = np.nan
+    got = StackedTrees(forests).predict(Xt)
+    assert got.shape == (3, 9)
+    for m, f in enumerate(forests):
+        assert np.allclose(got[m], f.predict(Xt[m]), atol=1e-12)
+    mlps = []
+    for s in range(3):
+        m = NumpyMLP(hidden=(16, 16))
+        r = np.random.default_rng(s)
+        m.mean_, m.scale_ = r.normal(size=5).astype(np.float32), r.uniform(0.5, 2, 5).astype(np.float32)
+        m.layers_ = [(r.normal(size=(a, b)).astype(np.float32), r.normal(size=b).astype(np.float32))
+                     for a, b in ((5, 16), (16, 16), (16, 6))]
+        mlps.append(m)
+    assert StackedMLP.stackable(mlps)
+    out = StackedMLP(mlps).forward(Xt[0])
+    for m, mlp in enumerate(mlps):
+        assert np.allclose(out[m], mlp._forward(Xt[0]), rtol=1e-5, atol=1e-5)
+    mlps[2].layers_ = mlps[2].layers_[:2] + [(np.zeros((16, 3), np.float32), np.zeros(3, np.float32))]
+    assert not StackedMLP.stackable(mlps)
+
+
+def test_the_bundled_averaged_head_stacked_equals_member_by_member():
+    from tests.conftest import REPO
+    from tracker.regressors import HeadEnsemble
+    from tracker.estimator import PoseEstimator
+    est = PoseEstimator(REPO / "models" / "lmo")
+    head = est.head
+    assert isinstance(head, HeadEnsemble) and head.stacked() is not None
+    rng = np.random.default_rng(0)
+    ids = est.obj_ids * 2
+    mu = rng.normal(size=(len(ids), est.bundle.manifest["latent_size"])).astype(np.float32)
+    boxes = np.column_stack([rng.uniform(0, 500, len(ids)), rng.uniform(0, 350, len(ids)),
+                             rng.uniform(30, 140, len(ids)), rng.uniform(30, 140, len(ids))])
+    K = np.array([[572.4, 0, 325.3], [0, 573.6, 242.0], [0, 0, 1]])
+    for k in (K, np.repeat(K[None], len(ids), 0)):  # one camera, or one per crop
+        Rs, ts = head.member_poses(mu, ids, boxes, k)
+        for m, h in enumerate(head.members):
+            R, t = h.predict(mu, ids, boxes, k)
+            assert np.allclose(Rs[m], R, atol=1e-6) and np.allclose(ts[m], t, rtol=1e-6)
+
