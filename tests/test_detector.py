@@ -393,6 +393,7 @@ def test_join_detectors_averages_the_networks_and_quantises_them(tiny_detector_b
     train_detector(split, second, minutes=0.01, width=4, batch=2, seed=1, **quiet)
     m = join_detectors(tiny_detector_bundle, [second], out_dir=tmp_path / "joined", **quiet)
     ens = m["detector"]["ensemble"]
+    a_thresh = open_bundle(tiny_detector_bundle).manifest["detector"]["score_thresh"]
     assert ens["members"] == 2 and ens["from"][1]["bundle"] == str(second)
     frame = lmo_dev.read_rgb(lmo_dev.im_ids[0])
 
@@ -405,14 +406,19 @@ def test_join_detectors_averages_the_networks_and_quantises_them(tiny_detector_b
     assert np.abs(joined - (a + b) / 2).max() < 1e-5
 
     q = join_detectors(tiny_detector_bundle, [second], out_dir=tmp_path / "int8", int8_data=split,
-                       calibration_images=3, **quiet)
+                       calibration_images=3, score_thresh=0.15, **quiet)
     assert q["detector"]["int8"]["calibration_images"] == 3
+    assert q["detector"]["score_thresh"] == 0.15 and m["detector"]["score_thresh"] == a_thresh
     ops = {n.op_type for n in onnx.load(str(tmp_path / "int8" / "detector.onnx")).graph.node}
     assert {"QuantizeLinear", "DequantizeLinear", "Mean"} <= ops
     C = len(q["detector"]["classes"])
     assert np.abs(maps(tmp_path / "int8")[0, :C] - joined[0, :C]).max() < 0.1
     assert all(d.obj_id in q["detector"]["classes"] for d in Detector(open_bundle(tmp_path / "int8"))(frame))
 
+    with pytest.raises(UserError, match="not a folder"):
+        join_detectors(tiny_detector_bundle, [second], out_dir=tmp_path / "n", int8_data=tmp_path / "none", **quiet)
+    with pytest.raises(UserError, match="between 0 and 1"):
+        join_detectors(tiny_detector_bundle, [second], out_dir=tmp_path / "t", score_thresh=1.5, **quiet)
     with pytest.raises(UserError, match="joined or quantised already"):
         join_detectors(tmp_path / "joined", [second], out_dir=tmp_path / "again", **quiet)
     with pytest.raises(UserError, match="has no detector"):

@@ -92,3 +92,23 @@ def test_the_bundled_averaged_head_stacked_equals_member_by_member():
             R, t = h.predict(mu, ids, boxes, k)
             assert np.allclose(Rs[m], R, atol=1e-6) and np.allclose(ts[m], t, rtol=1e-6)
 
+
+
+def test_mlp_weights_are_stored_in_half_precision_and_evaluated_in_float32():
+    import pickle
+
+    from tracker.regressors import NumpyMLP
+    r = np.random.default_rng(0)
+    m = NumpyMLP(hidden=(32,))
+    m.mean_, m.scale_ = np.zeros(5, np.float32), np.ones(5, np.float32)
+    m.layers_ = [(r.normal(size=(5, 32)).astype(np.float32), r.normal(size=32).astype(np.float32)),
+                 (r.normal(size=(32, 3)).astype(np.float32), r.normal(size=3).astype(np.float32))]
+    raw = pickle.dumps(m)
+    assert pickle.loads(raw).layers_[0][0].dtype == np.float32
+    assert all(W.dtype == np.float32 for W, _ in m.layers_)  # pickling leaves the fitted object as it was
+    small = pickle.loads(raw)
+    assert np.array_equal(small.layers_[0][0], m.layers_[0][0].astype(np.float16).astype(np.float32))
+    X = r.normal(size=(20, 5)).astype(np.float32)
+    assert np.allclose(small.predict(X), m.predict(X), rtol=1e-2, atol=1e-2)
+    m.layers_ = [(np.zeros((5, 600), np.float32), np.zeros(600, np.float32))]
+    assert len(pickle.dumps(m)) < 0.6 * (5 * 600 + 600) * 4  # about half the bytes of float32 weights and biases

@@ -457,6 +457,25 @@ def test_refit_heads_keeps_the_encoder_and_writes_a_verified_bundle(tiny_bundle,
         refit_heads(tiny_bundle, tmp_path, out_dir=tmp_path / "x", log=lambda *a: None)
 
 
+def test_refit_heads_with_an_epoch_budget_is_reproducible(tiny_bundle, tmp_path):
+    from tracker.train import refit_heads
+    split = tiny_bundle.parent / "split"
+    poses = []
+    for run in ("a", "b", "c"):
+        m = refit_heads(tiny_bundle, split, out_dir=tmp_path / run, reg_epochs=3, seed=0 if run != "c" else 1,
+                        log=lambda *a: None)
+        assert m["heads"]["reg_epochs"] == 3 and m["heads"]["reg_minutes"] is None
+        est = PoseEstimator(tmp_path / run)
+        assert est.head.rotation.epochs == 3 and est.head.rotation.minutes == float("inf")
+        scene = load_scene(split / "000000")
+        im_id = sorted(scene.gt)[0]
+        dets = [Detection(g.obj_id, np.asarray(g.info["bbox_visib"], float)) for g in scene.gt[im_id]
+                if g.info["bbox_visib"][2] > 1 and g.info["bbox_visib"][3] > 1]
+        poses.append(np.stack([p.t for p in est.estimate(scene.read_rgb(im_id), scene.K(im_id), dets)]))
+    assert np.array_equal(poses[0], poses[1])  # the same seed and epochs: the same heads, whatever the time
+    assert not np.allclose(poses[0], poses[2])  # another seed: other heads
+
+
 def test_join_heads_averages_refitted_heads_and_refuses_another_encoder(tiny_bundle, tmp_path):
     from tracker.bundle import write_manifest
     from tracker.geometry import mean_pose

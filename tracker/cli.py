@@ -138,7 +138,7 @@ def cmd_train(args) -> int:
     m = train_bundle(args.data, args.out, method=args.method, size=args.size, latent=args.latent,
                      minutes=args.minutes, seed=args.seed, max_images=args.max_images,
                      models_info_path=args.models_info, reg_minutes=args.reg_minutes, encoder=args.encoder,
-                     init_from=args.init_from, precision=args.precision,
+                     init_from=args.init_from, precision=args.precision, reg_epochs=args.reg_epochs,
                      command="app.py " + " ".join(sys.argv[1:]))
     _print_validation(args.out, m)
     return 0
@@ -147,7 +147,7 @@ def cmd_train(args) -> int:
 def cmd_refit_heads(args) -> int:
     from .train import refit_heads
     m = refit_heads(args.model, args.data, out_dir=args.out, seed=args.seed, reg_minutes=args.reg_minutes,
-                    keep_regressors=args.keep_regressors, jitter_scale=args.jitter_scale,
+                    keep_regressors=args.keep_regressors, jitter_scale=args.jitter_scale, reg_epochs=args.reg_epochs,
                     command="app.py " + " ".join(sys.argv[1:]))
     _print_validation(args.out or args.model, m)
     return 0
@@ -162,6 +162,8 @@ def cmd_join_heads(args) -> int:
 def cmd_join_detectors(args) -> int:
     from .detector_ensemble import join_detectors
     extra = {"calibration_images": args.calibration_images} if args.calibration_images else {}
+    if args.score_thresh is not None:
+        extra["score_thresh"] = args.score_thresh
     join_detectors(args.model, args.detectors_from, out_dir=args.out, int8_data=args.int8,
                    command="app.py " + " ".join(sys.argv[1:]), **extra)
     return 0
@@ -471,6 +473,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--latent", type=positive_int, default=128)
     s.add_argument("--minutes", type=positive_float, default=45.0, help="autoencoder time budget")
     s.add_argument("--reg-minutes", type=positive_float, default=5.0, help="time budget per MLP regressor")
+    s.add_argument("--reg-epochs", type=positive_int, metavar="N",
+                   help="train each MLP regressor for N epochs, whatever the time (reproducible; in place of --reg-minutes)")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--max-images", type=positive_int, help="use only the first N scene images")
     s.add_argument("--models-info", help="models_info.json (default: computed from the meshes)")
@@ -484,6 +488,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--data", required=True, help="the 'synth' split to fit on (the bundle's own, normally)")
     s.add_argument("--out", help="write the refitted bundle here (default: in place)")
     s.add_argument("--reg-minutes", type=positive_float, default=5.0, help="time budget per MLP regressor")
+    s.add_argument("--reg-epochs", type=positive_int, metavar="N",
+                   help="train each MLP regressor for N epochs, whatever the time (reproducible; in place of --reg-minutes)")
     s.add_argument("--keep-regressors", action="store_true",
                    help="keep the rotation, centre and distance regressors; fit only the distance-from-rotation "
                         "trees and the codebook")
@@ -508,6 +514,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--int8", metavar="SPLIT", help="quantise the joined detector to int8, calibrated on this synth split")
     s.add_argument("--calibration-images", type=positive_int,
                    help="images of the --int8 split to calibrate on, spread evenly over it (default: 200)")
+    s.add_argument("--score-thresh", type=float, metavar="T",
+                   help="run-time score threshold of the joined detector (default: the first member's)")
     s.set_defaults(func=cmd_join_detectors)
 
     s = sub.add_parser("train-detector", help="train the 2D detector on synth scenes and add it to a bundle")

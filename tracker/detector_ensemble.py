@@ -128,11 +128,17 @@ def _run(path, x: np.ndarray) -> np.ndarray:
 
 
 def join_detectors(model_dir, others, out_dir=None, int8_data=None, calibration_images: int = CALIBRATION_IMAGES,
-                   log=print, command: str | None = None) -> dict:
+                   score_thresh: float | None = None, log=print, command: str | None = None) -> dict:
     """Write ``out_dir`` (default: ``model_dir`` in place): ``model_dir``'s bundle whose
     detector averages its own and ``others``' detectors (bundles; only their detectors are
     read). With ``int8_data`` (a ``synth`` split) the joined graph is quantised to int8,
-    calibrated on ``calibration_images`` of its images."""
+    calibrated on ``calibration_images`` of its images. ``score_thresh``: the run-time
+    threshold of the joined detector (default: the first member's); averaged heatmaps peak
+    lower than each member's where the members' peaks do not coincide."""
+    if score_thresh is not None and not 0 < score_thresh < 1:
+        raise UserError(f"--score-thresh must lie between 0 and 1, not {score_thresh}")
+    if int8_data is not None and not Path(int8_data).is_dir():
+        raise UserError(f"--int8 {int8_data}: not a folder; give a 'synth' split to calibrate the int8 detector on")
     spec0, d0, p0 = _member(model_dir)
     members = [(model_dir, spec0, d0, p0)] + [(o, *_member(o)) for o in others]
     for path, spec, _, _ in members[1:]:
@@ -173,6 +179,8 @@ def join_detectors(model_dir, others, out_dir=None, int8_data=None, calibration_
     m = {k: v for k, v in src.manifest.items() if k not in ("files", "format")}
     m["name"] = out.name
     m["detector"] = {**d0, "ensemble": info, **({"int8": q} if int8_data is not None else {})}
+    if score_thresh is not None:
+        m["detector"]["score_thresh"] = float(score_thresh)
     write_manifest(out, m)
     manifest = read_verified_manifest(out)
     log(f"bundle {out}: a detector averaging {len(members)} networks"

@@ -70,8 +70,20 @@ def choose_knn(Xtr, ytr, Xva, size_va, centre_va_t, t_va, K_va, log=print):
                                                                         "val_te_median_mm": best[0]}
 
 
+MLP_EPOCHS = 300  # the regressors' epochs when a time budget (reg_minutes) ends them
+
+
+def mlp_budget(reg_minutes: float, reg_epochs: int | None, share: float = 1.0) -> dict:
+    """``epochs`` and ``minutes`` of one regressor MLP: ``reg_epochs`` epochs, whatever the time
+    (the same fit on any machine, given the seed), or up to ``MLP_EPOCHS`` within ``share`` of
+    ``reg_minutes`` (where a slower machine stops earlier and fits other weights)."""
+    if reg_epochs is not None:
+        return {"epochs": int(reg_epochs), "minutes": float("inf")}
+    return {"epochs": MLP_EPOCHS, "minutes": reg_minutes * share}
+
+
 def choose_distance(Xtr, ytr, Xva, yva, size_va, centre_va_t, t_va, K_va, reg_minutes: float, seed: int = 0,
-                    log=print):
+                    log=print, reg_epochs: int | None = None):
     """The distance head: the KNN of :func:`choose_knn` or an MLP, whichever has the lower
     whole-translation error on validation (the thesis prefers an MLP or RF once many objects
     share one model). The KNN keeps at most ``KNN_MAX_ROWS`` training codes, drawn at random,
@@ -82,7 +94,7 @@ def choose_distance(Xtr, ytr, Xva, yva, size_va, centre_va_t, t_va, K_va, reg_mi
     knn, knn_info = choose_knn(Xtr[keep], ytr[keep], Xva, size_va, centre_va_t, t_va, K_va, log=log)
     knn_info["rows"] = len(keep)
     log("distance MLP ...")
-    mlp = NumpyMLP(hidden=(256, 256), loss="l1", epochs=300, weight_decay=1e-2, minutes=reg_minutes / 2,
+    mlp = NumpyMLP(hidden=(256, 256), loss="l1", weight_decay=1e-2, **mlp_budget(reg_minutes, reg_epochs, 0.5),
                    seed=seed).fit(Xtr, ytr[:, None], None, Xva, yva[:, None], log=log)
     err = _median_te(np.exp(mlp.predict(Xva)[:, 0]) / size_va, centre_va_t, t_va, K_va)
     log(f"distance MLP: median translation error {err:.1f} mm (validation)")
@@ -130,7 +142,8 @@ def with_exact_boxes(cs, mu, cs_exact, mu_exact, tr, va):
 
 
 def fit_heads(mu, cs, obj_ids, models_info, tr, va, rng, reg_minutes: float = 5.0, codebook_per_object: int = 1500,
-              seed: int = 0, n_jittered: int | None = None, keep: PoseHead | None = None, log=print):
+              seed: int = 0, n_jittered: int | None = None, keep: PoseHead | None = None, log=print,
+              reg_epochs: int | None = None):
     """The regressors and the AAE codebook on frozen latent codes ``mu`` of the crops ``cs``.
 
     Rotations are learnt relative to the viewing ray through the object's centre (the crop
@@ -159,19 +172,20 @@ def fit_heads(mu, cs, obj_ids, models_info, tr, va, rng, reg_minutes: float = 5.
         log("rotation, centre and latent distance regressors kept")
     else:
         log("rotation MLP (6D, L1 on R, symmetry-aware, relative to the viewing ray) ...")
-        rot = NumpyMLP(hidden=ROTATION_HIDDEN, loss="l1_rotation", epochs=300, weight_decay=1e-2, minutes=reg_minutes,
+        rot = NumpyMLP(hidden=ROTATION_HIDDEN, loss="l1_rotation", weight_decay=1e-2, **mlp_budget(reg_minutes, reg_epochs),
                        seed=seed).fit(rotation_inputs(mu[tr], idx[tr], n_obj), R_ray[tr], symR[tr],
                                       rotation_inputs(mu[va], idx[va], n_obj), R_ray[va], symR[va], log=log)
         log(f"rotation MLP: best validation epoch {rot.best_epoch_}")
         log("centre MLP ...")
-        cen = NumpyMLP(hidden=(256,), loss="l1", epochs=300, weight_decay=1e-2, minutes=reg_minutes / 2,
+        cen = NumpyMLP(hidden=(256,), loss="l1", weight_decay=1e-2, **mlp_budget(reg_minutes, reg_epochs, 0.5),
                        seed=seed).fit(centre_inputs(mu[tr], idx[tr], n_obj, cs.box[tr], K[tr]), offsets[tr], None,
                                       centre_inputs(mu[va], idx[va], n_obj, cs.box[va], K[va]), offsets[va], log=log)
     cen_va = centre_from_box_offset(cs.box[va], cen.predict(centre_inputs(mu[va], idx[va], n_obj, cs.box[va], K[va])))
     if keep is None:
         dist, dist_info = choose_distance(distance_inputs(mu[tr], idx[tr], n_obj, cs.box[tr], K[tr]), log_tz_size[tr],
                                           distance_inputs(mu[va], idx[va], n_obj, cs.box[va], K[va]), log_tz_size[va],
-                                          size_feat[va], cen_va, cs.t[va], K[va], reg_minutes, seed=seed, log=log)
+                                          size_feat[va], cen_va, cs.t[va], K[va], reg_minutes, seed=seed, log=log,
+                                          reg_epochs=reg_epochs)
     by_rot, by_rot_info = choose_distance_by_rotation(
         R_ray[tr], idx[tr], n_obj, cs.box[tr], K[tr], log_tz_size[tr],
         rot.predict(rotation_inputs(mu[va], idx[va], n_obj)), idx[va], cs.box[va], K[va],
@@ -228,7 +242,7 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
                  minutes: float = 45.0, seed: int = 0, max_images: int | None = None,
                  models_info_path=None, codebook_per_object: int = 1500, reg_minutes: float = 5.0,
                  log=print, command: str | None = None, encoder: str = "plain", init_from=None,
-                 precision: str = "auto") -> dict:
+                 precision: str = "auto", reg_epochs: int | None = None) -> dict:
     torch = _torch()
     from .crops import CropSet, build_training_crops, crops_cache_path, train_val_split
     from .meshes import load_models
@@ -294,7 +308,7 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
         models_info = compute_models_info(load_models(mdir, obj_ids))
     head, codebook, dist_info, val = fit_heads(mu_h, cs_h, obj_ids, models_info, tr_h, va_h, rng,
                                                reg_minutes=reg_minutes, codebook_per_object=codebook_per_object,
-                                               seed=seed, n_jittered=len(cs), log=log)
+                                               seed=seed, n_jittered=len(cs), log=log, reg_epochs=reg_epochs)
 
     # ---- export (a detector already in the bundle, for the same objects, is kept)
     kept_detector = None
@@ -345,7 +359,8 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
         "validation_synthetic": val,
         "heads": {"rotation_frame": head.rotation_frame, "distance": dist_info["head"],
                   "distance_val_te_median_mm": dist_info["val_te_median_mm"],
-                  "distance_by_rotation": dist_info["by_rotation"], "boxes": "jittered and exact"},
+                  "distance_by_rotation": dist_info["by_rotation"], "boxes": "jittered and exact",
+                  "reg_minutes": None if reg_epochs else reg_minutes, "reg_epochs": reg_epochs},
         "command": command or "app.py " + " ".join(sys.argv[1:]),
         "created": time.strftime("%Y-%m-%d %H:%M:%S"),
     }
@@ -365,7 +380,7 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
 
 def refit_heads(model_dir, data_dir, out_dir=None, seed: int = 0, reg_minutes: float = 5.0,
                 codebook_per_object: int = 1500, keep_regressors: bool = False, log=print,
-                command: str | None = None, jitter_scale: float | None = None) -> dict:
+                command: str | None = None, jitter_scale: float | None = None, reg_epochs: int | None = None) -> dict:
     """Refit a bundle's regressors and AAE codebook on its frozen encoder (ONNX), without
     retraining the autoencoder; writes the bundle to ``out_dir`` (default: in place).
     ``keep_regressors``: keep its rotation, centre and latent distance regressors and fit only
@@ -418,7 +433,8 @@ def refit_heads(model_dir, data_dir, out_dir=None, seed: int = 0, reg_minutes: f
                         "(without --keep-regressors)")
     head, codebook, dist_info, val = fit_heads(mu_h, cs_h, est.obj_ids, models_info, tr_h, va_h, rng,
                                                reg_minutes=reg_minutes, codebook_per_object=codebook_per_object,
-                                               seed=seed, n_jittered=len(cs), keep=keep, log=log)
+                                               seed=seed, n_jittered=len(cs), keep=keep, log=log,
+                                               reg_epochs=reg_epochs)
     copy_bundle(src.root, out)
     import joblib
     joblib.dump(head, out / src.manifest["artefacts"]["pose_head"], compress=3)
@@ -435,7 +451,8 @@ def refit_heads(model_dir, data_dir, out_dir=None, seed: int = 0, reg_minutes: f
                   "distance_by_rotation": dist_info["by_rotation"], "kept_regressors": keep is not None,
                   "boxes": "jittered and exact", "jitter_scale": jitter_scale,
                   "data": str(data_dir), "seed": seed,
-                  "reg_minutes": reg_minutes, "minutes": round((time.perf_counter() - t0) / 60, 1),
+                  "reg_minutes": None if reg_epochs else reg_minutes, "reg_epochs": reg_epochs,
+                  "minutes": round((time.perf_counter() - t0) / 60, 1),
                   "command": command or "app.py " + " ".join(sys.argv[1:]),
                   "created": time.strftime("%Y-%m-%d %H:%M:%S")}
     write_manifest(out, m)
