@@ -380,6 +380,19 @@ def _add_precision(s) -> None:
                         "the CPU has it natively), fp32, or auto (bf16 where native)")
 
 
+def _add_regressor_budget(s) -> None:
+    s.add_argument("--reg-minutes", type=positive_float, default=5.0, help="time budget per MLP regressor")
+    s.add_argument("--reg-epochs", type=positive_int, metavar="N",
+                   help="train each MLP regressor for N epochs, whatever the time (reproducible; in place of --reg-minutes)")
+
+
+def _add_join(s, model_help: str, dest: str, from_help: str) -> None:
+    """The options of the join-* commands: the bundle that is kept, the bundles that join it, --out."""
+    s.add_argument("--model", required=True, help=model_help)
+    s.add_argument("--from", dest=dest, nargs="+", required=True, metavar="DIR", help=from_help)
+    s.add_argument("--out", help="write the joined bundle here (default: in place)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="app.py", description="autopose: real-time monocular 6-DoF "
                                 "pose tracking from an autoencoder latent (Auto-Pose).")
@@ -472,9 +485,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--size", type=positive_int, default=64, help="crop side in pixels (thesis: 128)")
     s.add_argument("--latent", type=positive_int, default=128)
     s.add_argument("--minutes", type=positive_float, default=45.0, help="autoencoder time budget")
-    s.add_argument("--reg-minutes", type=positive_float, default=5.0, help="time budget per MLP regressor")
-    s.add_argument("--reg-epochs", type=positive_int, metavar="N",
-                   help="train each MLP regressor for N epochs, whatever the time (reproducible; in place of --reg-minutes)")
+    _add_regressor_budget(s)
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--max-images", type=positive_int, help="use only the first N scene images")
     s.add_argument("--models-info", help="models_info.json (default: computed from the meshes)")
@@ -487,9 +498,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--model", required=True, help="bundle folder, e.g. models/lmo")
     s.add_argument("--data", required=True, help="the 'synth' split to fit on (the bundle's own, normally)")
     s.add_argument("--out", help="write the refitted bundle here (default: in place)")
-    s.add_argument("--reg-minutes", type=positive_float, default=5.0, help="time budget per MLP regressor")
-    s.add_argument("--reg-epochs", type=positive_int, metavar="N",
-                   help="train each MLP regressor for N epochs, whatever the time (reproducible; in place of --reg-minutes)")
+    _add_regressor_budget(s)
     s.add_argument("--keep-regressors", action="store_true",
                    help="keep the rotation, centre and distance regressors; fit only the distance-from-rotation "
                         "trees and the codebook")
@@ -500,17 +509,13 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_refit_heads)
 
     s = sub.add_parser("join-heads", help="one pose head averaging the head sets of bundles that share an encoder")
-    s.add_argument("--model", required=True, help="bundle folder whose encoder, codebook and detector are kept")
-    s.add_argument("--from", dest="heads_from", nargs="+", required=True, metavar="DIR",
-                   help="bundles with the same encoder (e.g. from 'refit-heads --out DIR') whose heads join")
-    s.add_argument("--out", help="write the joined bundle here (default: in place)")
+    _add_join(s, "bundle folder whose encoder, codebook and detector are kept", "heads_from",
+              "bundles with the same encoder (e.g. from 'refit-heads --out DIR') whose heads join")
     s.set_defaults(func=cmd_join_heads)
 
     s = sub.add_parser("join-detectors", help="one detector averaging the detectors of several bundles (optionally int8)")
-    s.add_argument("--model", required=True, help="bundle folder that gets the joined detector (its own is the first member)")
-    s.add_argument("--from", dest="detectors_from", nargs="+", required=True, metavar="DIR",
-                   help="bundles whose detectors (same classes, input and normalisation) join")
-    s.add_argument("--out", help="write the joined bundle here (default: in place)")
+    _add_join(s, "bundle folder that gets the joined detector (its own is the first member)", "detectors_from",
+              "bundles whose detectors (same classes, input and normalisation) join")
     s.add_argument("--int8", metavar="SPLIT", help="quantise the joined detector to int8, calibrated on this synth split")
     s.add_argument("--calibration-images", type=positive_int,
                    help="images of the --int8 split to calibrate on, spread evenly over it (default: 200)")

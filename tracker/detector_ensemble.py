@@ -21,7 +21,8 @@ CONTRACT = ("classes", "input_w", "input_h", "stride", "mean", "std", "pad_value
 CALIBRATION_IMAGES = 200
 
 
-def _member(path) -> tuple[DetectorSpec, dict, Path]:
+def _member(path):
+    """(bundle, its detector's spec, its manifest entry, its ONNX file): a detector that can join."""
     b = open_bundle(path)
     m = b.manifest
     if "detector" not in m or "detector" not in m.get("artefacts", {}):
@@ -29,7 +30,7 @@ def _member(path) -> tuple[DetectorSpec, dict, Path]:
     d = m["detector"]
     if "ensemble" in d or "int8" in d:
         raise UserError(f"{path}: its detector is joined or quantised already; join the detectors it was made from")
-    return DetectorSpec.from_dict(d), d, b.path("detector")
+    return b, DetectorSpec.from_dict(d), d, b.path("detector")
 
 
 def _onnx():
@@ -139,14 +140,13 @@ def join_detectors(model_dir, others, out_dir=None, int8_data=None, calibration_
         raise UserError(f"--score-thresh must lie between 0 and 1, not {score_thresh}")
     if int8_data is not None and not Path(int8_data).is_dir():
         raise UserError(f"--int8 {int8_data}: not a folder; give a 'synth' split to calibrate the int8 detector on")
-    spec0, d0, p0 = _member(model_dir)
-    members = [(model_dir, spec0, d0, p0)] + [(o, *_member(o)) for o in others]
+    src, spec0, d0, p0 = _member(model_dir)
+    members = [(model_dir, spec0, d0, p0)] + [(o, *_member(o)[1:]) for o in others]
     for path, spec, _, _ in members[1:]:
         diff = [k for k in CONTRACT if getattr(spec, k) != getattr(spec0, k)]
         if diff:
             raise UserError(f"{path}: its detector differs from {model_dir}'s in {', '.join(diff)}; "
                             "only detectors of the same classes, input and normalisation can be averaged")
-    src = open_bundle(model_dir)
     out = Path(out_dir) if out_dir else src.root
     with tempfile.TemporaryDirectory() as tmp:
         joined = Path(tmp) / "joined.onnx"
