@@ -401,6 +401,10 @@ def test_join_detectors_averages_the_networks_and_quantises_them(tiny_detector_b
         d = Detector(open_bundle(bundle))  # hashes verified, classes and output channels checked
         x = normalise(letterbox(frame, d.spec.input_w, d.spec.input_h, d.spec.pad_value)[0][None], d.spec)
         return d.session.run(None, {d.input_name: x})[0]
+
+    def maps_of(bundle, x):
+        d = Detector(open_bundle(bundle))
+        return d.session.run(None, {d.input_name: np.ascontiguousarray(x)})[0]
     a, b, joined = maps(tiny_detector_bundle), maps(second), maps(tmp_path / "joined")
     assert not np.allclose(a, b, atol=1e-3)  # two networks, so their mean is neither
     assert np.abs(joined - (a + b) / 2).max() < 1e-5
@@ -423,6 +427,21 @@ def test_join_detectors_averages_the_networks_and_quantises_them(tiny_detector_b
         join_detectors(tmp_path / "joined", [second], out_dir=tmp_path / "again", **quiet)
     with pytest.raises(UserError, match="has no detector"):
         join_detectors(tiny_detector_bundle, [tiny_bundle], out_dir=tmp_path / "none", **quiet)
+    with pytest.raises(UserError, match="nothing to join"):
+        join_detectors(tiny_detector_bundle, [], out_dir=tmp_path / "alone", **quiet)
+
+    # one network and its mirror image: the joined output is mirror-symmetric (x offsets turned)
+    mm = join_detectors(tiny_detector_bundle, [], out_dir=tmp_path / "mirror", mirror=True, **quiet)
+    assert mm["detector"]["ensemble"]["mirror"] and mm["detector"]["ensemble"]["members"] == 1
+    from tracker.detector_ensemble import mirror_fix
+    d = Detector(open_bundle(tmp_path / "mirror"))
+    x = normalise(letterbox(frame, d.spec.input_w, d.spec.input_h, d.spec.pad_value)[0][None], d.spec)
+    scale, shift = mirror_fix(a.shape[1])
+    run = lambda inp: d.session.run(None, {d.input_name: np.ascontiguousarray(inp)})[0]
+    plain, mirrored = run(x), run(x[..., ::-1])
+    assert np.abs(plain - (a + (maps_of(tiny_detector_bundle, x[..., ::-1])[..., ::-1] * scale + shift)) / 2).max() < 1e-5
+    assert np.abs(mirrored[..., ::-1] * scale + shift - plain).max() < 1e-5
+    assert not np.allclose(plain, a, atol=1e-3)
     other = tmp_path / "other"
     shutil.copytree(second, other)
     update_manifest(other, lambda man: man["detector"].update(input_w=256))

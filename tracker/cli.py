@@ -164,7 +164,7 @@ def cmd_join_detectors(args) -> int:
     extra = {"calibration_images": args.calibration_images} if args.calibration_images else {}
     if args.score_thresh is not None:
         extra["score_thresh"] = args.score_thresh
-    join_detectors(args.model, args.detectors_from, out_dir=args.out, int8_data=args.int8,
+    join_detectors(args.model, args.detectors_from, out_dir=args.out, int8_data=args.int8, mirror=args.mirror,
                    command="app.py " + " ".join(sys.argv[1:]), **extra)
     return 0
 
@@ -386,10 +386,10 @@ def _add_regressor_budget(s) -> None:
                    help="train each MLP regressor for N epochs, whatever the time (reproducible; in place of --reg-minutes)")
 
 
-def _add_join(s, model_help: str, dest: str, from_help: str) -> None:
+def _add_join(s, model_help: str, dest: str, from_help: str, required: bool = True) -> None:
     """The options of the join-* commands: the bundle that is kept, the bundles that join it, --out."""
     s.add_argument("--model", required=True, help=model_help)
-    s.add_argument("--from", dest=dest, nargs="+", required=True, metavar="DIR", help=from_help)
+    s.add_argument("--from", dest=dest, nargs="+", required=required, default=[], metavar="DIR", help=from_help)
     s.add_argument("--out", help="write the joined bundle here (default: in place)")
 
 
@@ -515,7 +515,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("join-detectors", help="one detector averaging the detectors of several bundles (optionally int8)")
     _add_join(s, "bundle folder that gets the joined detector (its own is the first member)", "detectors_from",
-              "bundles whose detectors (same classes, input and normalisation) join")
+              "bundles whose detectors (same classes, input and normalisation) join", required=False)
+    s.add_argument("--mirror", action="store_true",
+                   help="average every network's output on the image and on its mirror image too (one network "
+                        "needs no --from then); twice the network's work")
     s.add_argument("--int8", metavar="SPLIT", help="quantise the joined detector to int8, calibrated on this synth split")
     s.add_argument("--calibration-images", type=positive_int,
                    help="images of the --int8 split to calibrate on, spread evenly over it (default: 200)")
