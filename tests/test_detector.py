@@ -431,8 +431,8 @@ def test_join_detectors_averages_the_networks_and_quantises_them(tiny_detector_b
         join_detectors(tiny_detector_bundle, [], out_dir=tmp_path / "alone", **quiet)
 
     # one network and its mirror image: the joined output is mirror-symmetric (x offsets turned)
-    mm = join_detectors(tiny_detector_bundle, [], out_dir=tmp_path / "mirror", mirror=True, **quiet)
-    assert mm["detector"]["ensemble"]["mirror"] and mm["detector"]["ensemble"]["members"] == 1
+    mm = join_detectors(tiny_detector_bundle, [], out_dir=tmp_path / "mirror", mirror="both", **quiet)
+    assert mm["detector"]["ensemble"]["mirror"] == "both" and mm["detector"]["ensemble"]["members"] == 1
     from tracker.detector_ensemble import mirror_fix
     d = Detector(open_bundle(tmp_path / "mirror"))
     x = normalise(letterbox(frame, d.spec.input_w, d.spec.input_h, d.spec.pad_value)[0][None], d.spec)
@@ -442,6 +442,12 @@ def test_join_detectors_averages_the_networks_and_quantises_them(tiny_detector_b
     assert np.abs(plain - (a + (maps_of(tiny_detector_bundle, x[..., ::-1])[..., ::-1] * scale + shift)) / 2).max() < 1e-5
     assert np.abs(mirrored[..., ::-1] * scale + shift - plain).max() < 1e-5
     assert not np.allclose(plain, a, atol=1e-3)
+    # two networks by turns: the second sees only the mirror image, at no extra work
+    join_detectors(tiny_detector_bundle, [second], out_dir=tmp_path / "alt", mirror="alternate", **quiet)
+    alt = maps_of(tmp_path / "alt", x)
+    assert np.abs(alt - (a + maps_of(second, x[..., ::-1])[..., ::-1] * scale + shift) / 2).max() < 1e-5
+    with pytest.raises(UserError, match="--mirror must be one of"):
+        join_detectors(tiny_detector_bundle, [second], out_dir=tmp_path / "m", mirror="sideways", **quiet)
     other = tmp_path / "other"
     shutil.copytree(second, other)
     update_manifest(other, lambda man: man["detector"].update(input_w=256))

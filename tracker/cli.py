@@ -516,9 +516,10 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("join-detectors", help="one detector averaging the detectors of several bundles (optionally int8)")
     _add_join(s, "bundle folder that gets the joined detector (its own is the first member)", "detectors_from",
               "bundles whose detectors (same classes, input and normalisation) join", required=False)
-    s.add_argument("--mirror", action="store_true",
-                   help="average every network's output on the image and on its mirror image too (one network "
-                        "needs no --from then); twice the network's work")
+    s.add_argument("--mirror", choices=("none", "both", "alternate"), default="none",
+                   help="mirror images too: 'both' averages every network on the image and its mirror image "
+                        "(twice the work; one network needs no --from then), 'alternate' shows the networks the "
+                        "image and the mirror image by turns (no extra work)")
     s.add_argument("--int8", metavar="SPLIT", help="quantise the joined detector to int8, calibrated on this synth split")
     s.add_argument("--calibration-images", type=positive_int,
                    help="images of the --int8 split to calibrate on, spread evenly over it (default: 200)")

@@ -41,36 +41,53 @@ def _onnx():
     return onnx
 
 
-def merge_graphs(paths, out_path, mirror: bool = False) -> None:
+MIRROR_MODES = ("none", "both", "alternate")
+
+
+def member_views(n: int, mirror: str) -> list[tuple[str, ...]]:
+    """What each of ``n`` members sees: ``none``, the image; ``both``, the image and its mirror
+    image (twice the work); ``alternate``, the image and the mirror image by turns (the first
+    member the image), so that members trained alike err less alike at no extra work."""
+    if mirror not in MIRROR_MODES:
+        raise UserError(f"--mirror must be one of {', '.join(MIRROR_MODES)}, not '{mirror}'")
+    if mirror == "both":
+        return [("plain", "mirror")] * n
+    if mirror == "alternate":
+        return [("plain",) if i % 2 == 0 else ("mirror",) for i in range(n)]
+    return [("plain",)] * n
+
+
+def merge_graphs(paths, out_path, mirror: str = "none") -> None:
     """One ONNX graph: the members side by side on one shared input, their outputs averaged
     (``Mean``) into one output named as the first member's. The batch is fixed at 1 (the
     run-time detector sees one frame at a time), which lets onnxruntime fold the shape
     arithmetic of the upsampling away (measured: 6.4 against 6.8 ms for three int8 members).
-    With ``mirror`` every member also sees the image mirrored left to right (the two as one
-    batch of 2); that output is mirrored back, its x offsets turned (``mirrored_back``), and
-    averaged with the rest."""
+    ``mirror`` (``member_views``): members that see the image mirrored left to right (with
+    ``both``, as a batch of 2 with the image) have that output mirrored back and its x offsets
+    turned (``mirror_fix``) before the mean."""
     onnx = _onnx()
     from onnx import compose, helper, numpy_helper
     models = [onnx.load(str(p)) for p in paths]
+    views = member_views(len(models), mirror)
     first = models[0].graph
     in_name, out_name = first.input[0].name, first.output[0].name
     opset = max(o.version for m in models for o in m.opset_import if o.domain in ("", "ai.onnx"))
     nodes, inits, outs = [], [], []
-    feed = in_name
-    if mirror:
+    flip = ["mirror_starts", "mirror_ends", "mirror_axes", "mirror_steps"]  # Slice: axis 3 backwards
+    if any("mirror" in v for v in views):
         channels = first.output[0].type.tensor_type.shape.dim[1].dim_value
         if channels < 5:
             raise UserError(f"{paths[0]}: its output's channel count is not static; re-export the detector")
         scale, shift = mirror_fix(channels)
         inits += [numpy_helper.from_array(np.array(v, np.int64), n) for v, n in
-                  (([-1], "mirror_starts"), ([np.iinfo(np.int64).min], "mirror_ends"), ([3], "mirror_axes"),
-                   ([-1], "mirror_steps"), ([1, 1], "mirror_split"))]
+                  zip(([-1], [np.iinfo(np.int64).min], [3], [-1], [1, 1]), flip + ["mirror_split"])]
         inits += [numpy_helper.from_array(scale, "mirror_scale"), numpy_helper.from_array(shift, "mirror_shift")]
-        nodes += [helper.make_node("Slice", [in_name, "mirror_starts", "mirror_ends", "mirror_axes", "mirror_steps"],
-                                   ["mirror_input"], name="mirror_input"),
-                  helper.make_node("Concat", [in_name, "mirror_input"], ["mirror_batch"], axis=0, name="mirror_batch")]
-        feed = "mirror_batch"
-    for i, m in enumerate(models):
+        nodes.append(helper.make_node("Slice", [in_name] + flip, ["mirror_input"], name="mirror_input"))
+        if any(len(v) == 2 for v in views):
+            nodes.append(helper.make_node("Concat", [in_name, "mirror_input"], ["mirror_batch"], axis=0,
+                                          name="mirror_batch"))
+    feeds = {("plain",): in_name, ("mirror",): "mirror_input", ("plain", "mirror"): "mirror_batch"}
+    for i, (m, view) in enumerate(zip(models, views)):
         if len(m.graph.input) != 1 or len(m.graph.output) != 1:
             raise UserError(f"{paths[i]}: a detector has one input and one output")
         m = compose.add_prefix(m, f"m{i}_")
@@ -79,20 +96,21 @@ def merge_graphs(paths, out_path, mirror: bool = False) -> None:
         for n in g.node:
             for k, name in enumerate(n.input):
                 if name == mine:
-                    n.input[k] = feed
+                    n.input[k] = feeds[view]
         nodes += g.node
         inits += g.initializer
-        o = g.output[0].name
-        if not mirror:
+        o, p = g.output[0].name, f"m{i}_mirror_"
+        if view == ("plain",):
             outs.append(o)
             continue
-        p = f"m{i}_mirror_"
-        nodes += [helper.make_node("Split", [o, "mirror_split"], [p + "plain", p + "out"], axis=0, name=p + "split"),
-                  helper.make_node("Slice", [p + "out", "mirror_starts", "mirror_ends", "mirror_axes", "mirror_steps"],
-                                   [p + "back"], name=p + "back"),
+        if view == ("plain", "mirror"):
+            nodes.append(helper.make_node("Split", [o, "mirror_split"], [p + "plain", p + "out"], axis=0, name=p + "split"))
+            outs.append(p + "plain")
+            o = p + "out"
+        nodes += [helper.make_node("Slice", [o] + flip, [p + "back"], name=p + "back"),
                   helper.make_node("Mul", [p + "back", "mirror_scale"], [p + "scaled"], name=p + "scaled"),
                   helper.make_node("Add", [p + "scaled", "mirror_shift"], [p + "fixed"], name=p + "fixed")]
-        outs += [p + "plain", p + "fixed"]
+        outs.append(p + "fixed")
     nodes.append(helper.make_node("Mean", outs, [out_name], name="ensemble_mean"))
     io = [onnx.ValueInfoProto(), onnx.ValueInfoProto()]
     for v, src in zip(io, (first.input[0], first.output[0])):
@@ -169,18 +187,19 @@ def _run(path, x: np.ndarray) -> np.ndarray:
 
 
 def join_detectors(model_dir, others, out_dir=None, int8_data=None, calibration_images: int = CALIBRATION_IMAGES,
-                   score_thresh: float | None = None, mirror: bool = False, log=print, command: str | None = None) -> dict:
+                   score_thresh: float | None = None, mirror: str = "none", log=print, command: str | None = None) -> dict:
     """Write ``out_dir`` (default: ``model_dir`` in place): ``model_dir``'s bundle whose
     detector averages its own and ``others``' detectors (bundles; only their detectors are
-    read), with ``mirror`` on the image and on its mirror image (``merge_graphs``), so that
-    one network can join itself. With ``int8_data`` (a ``synth`` split) the joined graph is quantised to int8,
+    read), on the image or its mirror image as ``mirror`` says (``member_views``; with
+    ``both`` one network can join itself). With ``int8_data`` (a ``synth`` split) the joined graph is quantised to int8,
     calibrated on ``calibration_images`` of its images. ``score_thresh``: the run-time
     threshold of the joined detector (default: the first member's); averaged heatmaps peak
     lower than each member's where the members' peaks do not coincide."""
     others = list(others or [])
-    if not others and not mirror:
+    views = member_views(1 + len(others), mirror)
+    if not others and mirror != "both":
         raise UserError("nothing to join: name other bundles with --from, or average the detector with its "
-                        "mirror image (--mirror)")
+                        "mirror image (--mirror both)")
     if score_thresh is not None and not 0 < score_thresh < 1:
         raise UserError(f"--score-thresh must lie between 0 and 1, not {score_thresh}")
     if int8_data is not None and not Path(int8_data).is_dir():
@@ -196,7 +215,7 @@ def join_detectors(model_dir, others, out_dir=None, int8_data=None, calibration_
     with tempfile.TemporaryDirectory() as tmp:
         joined = Path(tmp) / "joined.onnx"
         merge_graphs([p for *_, p in members], joined, mirror=mirror)
-        info = {"members": len(members), "mirror": bool(mirror),
+        info = {"members": len(members), "mirror": mirror, "views": [list(v) for v in views],
                 "from": [{"bundle": str(path), "detector_sha256": sha256(p), "command": d.get("training", {}).get("command"),
                           "data": d.get("training", {}).get("data"), "steps": d.get("training", {}).get("steps")}
                          for path, _, d, p in members],
@@ -229,5 +248,5 @@ def join_detectors(model_dir, others, out_dir=None, int8_data=None, calibration_
     write_manifest(out, m)
     manifest = read_verified_manifest(out)
     log(f"bundle {out}: a detector averaging {len(members)} network{'s' if len(members) > 1 else ''}"
-        + (" on the image and its mirror image" if mirror else "") + (" (int8)" if int8_data is not None else "") + f", {dest.stat().st_size / 1e6:.1f} MB")
+        + {"none": "", "both": " on the image and its mirror image", "alternate": ", the image and its mirror image by turns"}[mirror] + (" (int8)" if int8_data is not None else "") + f", {dest.stat().st_size / 1e6:.1f} MB")
     return manifest
