@@ -56,3 +56,23 @@ def test_decimate_rewrites_the_overlay_meshes_of_a_bundle_that_has_them(bundle):
     assert after["overlay_faces"] == 400
     rel = after["objects"][0]["overlay_mesh"]
     assert after["files"][rel]["sha256"] != before["files"][rel]["sha256"]
+
+
+def test_a_staged_change_lands_whole_or_not_at_all(bundle):
+    from tracker.bundle import staged_bundle, sha256
+    before = sha256(bundle / "manifest.json")
+    with pytest.raises(KeyboardInterrupt):
+        with staged_bundle(bundle, bundle) as stage:
+            (stage / "detector.onnx").write_bytes(b"half written")
+            raise KeyboardInterrupt  # Ctrl-C before the manifest is re-hashed
+    assert sha256(bundle / "manifest.json") == before
+    open_bundle(bundle)  # every hash still matches: the old bundle, untouched
+    assert sorted(p.name for p in bundle.parent.iterdir()) == ["lmo"]  # no staging folder left
+
+    with staged_bundle(bundle, bundle) as stage:
+        m = {k: v for k, v in json.loads((stage / "manifest.json").read_text()).items() if k not in ("files", "format")}
+        m["name"] = "changed"
+        write_manifest(stage, m)
+    assert open_bundle(bundle).manifest["name"] == "changed"
+    assert sorted(p.name for p in bundle.parent.iterdir()) == ["lmo"]
+

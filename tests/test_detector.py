@@ -379,7 +379,8 @@ def test_loop_with_the_detector_on_the_bundled_recording(tiny_detector_bundle, t
     assert all(e.im_id in (3, 8, 17) for e in read_results(out / "poses.csv"))
 
 
-def test_join_detectors_averages_the_networks_and_quantises_them(tiny_detector_bundle, tiny_bundle, lmo_dev, tmp_path):
+def test_join_detectors_averages_the_networks_and_quantises_them(tiny_detector_bundle, tiny_bundle, lmo_dev, tmp_path,
+                                                                 monkeypatch):
     pytest.importorskip("onnx")
     import onnx
     from tracker.bundle import open_bundle, update_manifest
@@ -453,3 +454,18 @@ def test_join_detectors_averages_the_networks_and_quantises_them(tiny_detector_b
     update_manifest(other, lambda man: man["detector"].update(input_w=256))
     with pytest.raises(UserError, match="input_w"):
         join_detectors(tiny_detector_bundle, [other], out_dir=tmp_path / "bad", **quiet)
+
+    # Ctrl-C before the manifest is re-hashed: an in-place join leaves the bundle as it was
+    from tracker import detector_ensemble
+    from tracker.bundle import sha256
+    inplace = tmp_path / "inplace" / "b"
+    shutil.copytree(tiny_detector_bundle, inplace)
+    before = sha256(inplace / "detector.onnx")
+
+    def interrupted(*args, **kw):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(detector_ensemble, "write_manifest", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        join_detectors(inplace, [second], **quiet)
+    assert sha256(inplace / "detector.onnx") == before and [p.name for p in inplace.parent.iterdir()] == ["b"]
+    Detector(open_bundle(inplace))

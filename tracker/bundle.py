@@ -5,9 +5,11 @@ handed to onnxruntime, and refuses a bundle with a missing, extra-listed or alte
 """
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import shutil
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -100,15 +102,26 @@ class Bundle:
         return sha256(self.root / MANIFEST)
 
 
-def copy_bundle(src_root, out) -> Path:
-    """``out`` holding a copy of the bundle at ``src_root`` (what was there is replaced), or
-    ``src_root`` itself when ``out`` is that folder: where a job writes a changed bundle."""
+@contextlib.contextmanager
+def staged_bundle(src_root, out):
+    """Where a job writes a changed bundle: yields a copy of the bundle at ``src_root`` in a
+    staging folder beside ``out``; when the block ends without error that folder takes ``out``'s
+    place (``out`` may be ``src_root``: in place). An interrupted job (Ctrl-C, a crash, a refusal)
+    leaves ``out`` as it was and no staging folder behind."""
     src_root, out = Path(src_root), Path(out)
-    if out.resolve() != src_root.resolve():
-        if out.exists():
-            shutil.rmtree(out)
-        shutil.copytree(src_root, out)
-    return out
+    out.parent.mkdir(parents=True, exist_ok=True)
+    stage = Path(tempfile.mkdtemp(prefix=f".{out.name}.staging-", dir=out.parent))
+    try:
+        shutil.copytree(src_root, stage, dirs_exist_ok=True)
+        yield stage
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)
+        raise
+    old = stage.with_name(stage.name + ".old")
+    if out.exists():
+        out.rename(old)
+    stage.rename(out)
+    shutil.rmtree(old, ignore_errors=True)
 
 
 def update_manifest(bundle_dir, change) -> dict:

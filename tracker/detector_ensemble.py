@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .bundle import copy_bundle, open_bundle, read_verified_manifest, sha256, write_manifest
+from .bundle import open_bundle, read_verified_manifest, sha256, staged_bundle, write_manifest
 from .detector import DetectorSpec, letterbox, normalise
 from .errors import UserError
 
@@ -237,16 +237,16 @@ def join_detectors(model_dir, others, out_dir=None, int8_data=None, calibration_
                  "box_channels_mean_abs_diff": float(np.abs(got[:, C:] - ref[:, C:]).mean())}
             log(f"int8 against float on {len(x_check)} calibration images: heatmaps max |diff| "
                 f"{q['heatmap_max_abs_diff']:.3f}, box channels mean |diff| {q['box_channels_mean_abs_diff']:.4f}")
-        copy_bundle(src.root, out)
-        dest = out / src.manifest["artefacts"]["detector"]
-        dest.write_bytes(final.read_bytes())
-    m = {k: v for k, v in src.manifest.items() if k not in ("files", "format")}
-    m["name"] = out.name
-    m["detector"] = {**d0, "ensemble": info, **({"int8": q} if int8_data is not None else {})}
-    if score_thresh is not None:
-        m["detector"]["score_thresh"] = float(score_thresh)
-    write_manifest(out, m)
+        m = {k: v for k, v in src.manifest.items() if k not in ("files", "format")}
+        m["name"] = out.name
+        m["detector"] = {**d0, "ensemble": info, **({"int8": q} if int8_data is not None else {})}
+        if score_thresh is not None:
+            m["detector"]["score_thresh"] = float(score_thresh)
+        with staged_bundle(src.root, out) as stage:
+            (stage / src.manifest["artefacts"]["detector"]).write_bytes(final.read_bytes())
+            write_manifest(stage, m)
     manifest = read_verified_manifest(out)
+    dest = out / src.manifest["artefacts"]["detector"]
     log(f"bundle {out}: a detector averaging {len(members)} network{'s' if len(members) > 1 else ''}"
         + {"none": "", "both": " on the image and its mirror image", "alternate": ", the image and its mirror image by turns"}[mirror] + (" (int8)" if int8_data is not None else "") + f", {dest.stat().st_size / 1e6:.1f} MB")
     return manifest

@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 
 from .bop import load_models_info, symmetry_rotations
-from .bundle import copy_bundle, open_bundle, read_verified_manifest, write_manifest
+from .bundle import open_bundle, read_verified_manifest, staged_bundle, write_manifest
 from .errors import UserError
 from .regressors import HeadEnsemble, PoseHead
 
@@ -46,9 +46,7 @@ def join_heads(model_dir, others, out_dir=None, log=print, command: str | None =
     syms = {o: symmetry_rotations(info[o]) for o in obj_ids}
     ensemble = HeadEnsemble(heads, syms)
     out = Path(out_dir) if out_dir else src.root
-    copy_bundle(src.root, out)
     import joblib
-    joblib.dump(ensemble, out / src.manifest["artefacts"]["pose_head"], compress=3)
     m = {k: v for k, v in src.manifest.items() if k not in ("files", "format")}
     m["name"] = out.name
     m["heads"] = {**src.manifest.get("heads", {}),
@@ -56,7 +54,9 @@ def join_heads(model_dir, others, out_dir=None, log=print, command: str | None =
                                "note": "validation_synthetic is the first member's",
                                "command": command or "app.py " + " ".join(sys.argv[1:]),
                                "created": time.strftime("%Y-%m-%d %H:%M:%S")}}
-    write_manifest(out, m)
+    with staged_bundle(src.root, out) as stage:
+        joblib.dump(ensemble, stage / src.manifest["artefacts"]["pose_head"], compress=3)
+        write_manifest(stage, m)
     manifest = read_verified_manifest(out)
     log(f"bundle {out}: a pose head averaging {len(ensemble.members)} head sets")
     return manifest

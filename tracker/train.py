@@ -388,7 +388,7 @@ def refit_heads(model_dir, data_dir, out_dir=None, seed: int = 0, reg_minutes: f
     trees existed). ``jitter_scale``: the log-size noise of the jittered boxes (default
     :data:`~tracker.crops.JITTER_SCALE`, what the autoencoder trained on)."""
     _torch()  # the MLPs train with torch
-    from .bundle import copy_bundle, read_verified_manifest, write_manifest
+    from .bundle import read_verified_manifest, staged_bundle, write_manifest
     from .crops import JITTER_SCALE, bundle_training_crops, crops_cache_path, train_val_split
     from .estimator import PoseEstimator
     jitter_scale = JITTER_SCALE if jitter_scale is None else jitter_scale
@@ -435,11 +435,7 @@ def refit_heads(model_dir, data_dir, out_dir=None, seed: int = 0, reg_minutes: f
                                                reg_minutes=reg_minutes, codebook_per_object=codebook_per_object,
                                                seed=seed, n_jittered=len(cs), keep=keep, log=log,
                                                reg_epochs=reg_epochs)
-    copy_bundle(src.root, out)
     import joblib
-    joblib.dump(head, out / src.manifest["artefacts"]["pose_head"], compress=3)
-    joblib.dump(codebook, out / src.manifest["artefacts"]["codebook"], compress=3)
-
     m = {k: v for k, v in src.manifest.items() if k not in ("files", "format")}
     m["name"] = out.name
     old = src.manifest.get("heads", {})
@@ -455,7 +451,10 @@ def refit_heads(model_dir, data_dir, out_dir=None, seed: int = 0, reg_minutes: f
                   "minutes": round((time.perf_counter() - t0) / 60, 1),
                   "command": command or "app.py " + " ".join(sys.argv[1:]),
                   "created": time.strftime("%Y-%m-%d %H:%M:%S")}
-    write_manifest(out, m)
+    with staged_bundle(src.root, out) as stage:
+        joblib.dump(head, stage / src.manifest["artefacts"]["pose_head"], compress=3)
+        joblib.dump(codebook, stage / src.manifest["artefacts"]["codebook"], compress=3)
+        write_manifest(stage, m)
     manifest = read_verified_manifest(out)
     log(f"bundle {out}: heads refitted in {(time.perf_counter() - t0) / 60:.1f} min")
     return manifest
