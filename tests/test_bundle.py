@@ -2,6 +2,7 @@
 import json
 import shutil
 
+import numpy as np
 import pytest
 
 from tests.conftest import REPO
@@ -76,3 +77,26 @@ def test_a_staged_change_lands_whole_or_not_at_all(bundle):
     assert open_bundle(bundle).manifest["name"] == "changed"
     assert sorted(p.name for p in bundle.parent.iterdir()) == ["lmo"]
 
+
+
+def test_exact_and_detector_boxes_get_the_manifests_trees_weights(bundle, lmo_dev):
+    from tracker.estimator import Detection
+    from tracker.evaluate import gt_boxes, gt_instances_with_boxes
+    from tracker.meshes import load_models
+    im = lmo_dev.im_ids[0]
+    boxes, _ = gt_boxes(lmo_dev, load_models(bundle / "meshes", sorted({g.obj_id for g in lmo_dev.gt[im]})), [im])
+    inst = [(o, b) for o, b, _ in gt_instances_with_boxes(lmo_dev.gt[im], boxes[im], 0.1) if o in (1, 5)]
+    img, K = lmo_dev.read_rgb(im), lmo_dev.K(im)
+
+    def poses(exact, weights):
+        _rehash(bundle, lambda m: m["heads"].update(trees_weight=weights))
+        return PoseEstimator(bundle).estimate(img, K, [Detection(o, b, exact=exact) for o, b in inst])
+    a = poses(True, {"exact": 0.5, "detector": 0.0})
+    b = poses(False, {"exact": 0.5, "detector": 0.0})
+    c = poses(False, {"exact": 0.0, "detector": 0.5})
+    for pa, pb, pc in zip(a, b, c):
+        assert np.allclose(pa.R, pb.R) and np.allclose(pa.t, pc.t)  # the box's kind picks the weight
+        assert not np.allclose(pa.t, pb.t)
+    _rehash(bundle, lambda m: m["heads"].update(trees_weight={"detector": 2}))
+    with pytest.raises(UserError, match="trees_weight"):
+        PoseEstimator(bundle)

@@ -469,3 +469,25 @@ def test_join_detectors_averages_the_networks_and_quantises_them(tiny_detector_b
         join_detectors(inplace, [second], **quiet)
     assert sha256(inplace / "detector.onnx") == before and [p.name for p in inplace.parent.iterdir()] == ["b"]
     Detector(open_bundle(inplace))
+
+
+def test_tune_heads_picks_the_trees_weight_on_renders(tiny_bundle, tmp_path):
+    from tests.conftest import REPO
+    from tracker.bundle import open_bundle, sha256
+    from tracker.tune_heads import tune_trees_weight
+    split = tiny_bundle.parent / "split"
+    src = REPO / "models" / "lmo"
+    before = sha256(src / "manifest.json")
+    m = tune_trees_weight(src, split, weights=(1.0, 0.0), out_dir=tmp_path / "tuned", max_frames=2, log=lambda *a: None)
+    tw = m["heads"]["trees_weight"]
+    table = tw["by_weight"]
+    assert set(table) == {"0.0", "1.0"} and table["0.0"]["instances"] > 0
+    assert table["0.0"]["te_median_mm"] != table["1.0"]["te_median_mm"]  # the weight reaches the poses
+    best = max(table, key=lambda w: (table[w]["add_recall"], table[w]["ar_mssd"]))
+    assert tw["detector"] == float(best) and tw["exact"] == 0.5 and tw["chosen_on"] == str(split)
+    assert sha256(src / "manifest.json") == before  # --out: the source bundle untouched
+    open_bundle(tmp_path / "tuned")
+    with pytest.raises(UserError, match="in \\[0, 1\\]"):
+        tune_trees_weight(src, split, weights=(1.5,), out_dir=tmp_path / "bad", log=lambda *a: None)
+    with pytest.raises(UserError, match="has no detector"):
+        tune_trees_weight(tiny_bundle, split, out_dir=tmp_path / "bad", log=lambda *a: None)

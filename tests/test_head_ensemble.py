@@ -15,7 +15,7 @@ class FixedHead:
     def __init__(self, R, t, obj_ids=(10,)):
         self.R, self.t, self.obj_ids = np.asarray(R, float), np.asarray(t, float), list(obj_ids)
 
-    def predict(self, mu, obj_ids, boxes, K, mode="regression"):
+    def predict(self, mu, obj_ids, boxes, K, mode="regression", trees_weight=0.5):
         n = len(obj_ids)
         return np.repeat(self.R[None], n, 0), np.repeat(self.t[None], n, 0)
 
@@ -91,6 +91,18 @@ def test_the_bundled_averaged_head_stacked_equals_member_by_member():
         for m, h in enumerate(head.members):
             R, t = h.predict(mu, ids, boxes, k)
             assert np.allclose(Rs[m], R, atol=1e-6) and np.allclose(ts[m], t, rtol=1e-6)
+
+    # the trees' share of the distance, one per crop: stacked as member by member; 0 leaves the
+    # latent MLP's distance alone and the rotation untouched
+    w = np.tile([0.0, 0.5], len(ids) // 2)
+    Rw, tw = head.member_poses(mu, ids, boxes, K, trees_weight=w)
+    R0, t0 = head.member_poses(mu, ids, boxes, K, trees_weight=0.0)
+    R5, t5 = head.member_poses(mu, ids, boxes, K)
+    for m, h in enumerate(head.members):
+        R, t = h.predict(mu, ids, boxes, K, trees_weight=w)
+        assert np.allclose(Rw[m], R, atol=1e-6) and np.allclose(tw[m], t, rtol=1e-6)
+    assert np.allclose(R0, R5) and np.allclose(tw[:, w == 0], t0[:, w == 0]) and np.allclose(tw[:, w > 0], t5[:, w > 0])
+    assert not np.allclose(t0[..., 2], t5[..., 2], rtol=1e-3)  # the trees do move the distance
 
 
 

@@ -169,6 +169,13 @@ def cmd_join_detectors(args) -> int:
     return 0
 
 
+def cmd_tune_heads(args) -> int:
+    from .tune_heads import WEIGHTS, tune_trees_weight
+    tune_trees_weight(args.model, args.data, weights=args.weights or WEIGHTS, out_dir=args.out,
+                      max_frames=args.max_frames, command="app.py " + " ".join(sys.argv[1:]))
+    return 0
+
+
 def cmd_train_detector(args) -> int:
     from .detector_train import train_detector
     d = train_detector(args.data, args.model, minutes=args.minutes, width=args.width, input_w=args.input[0],
@@ -526,6 +533,15 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--score-thresh", type=float, metavar="T",
                    help="run-time score threshold of the joined detector (default: the first member's)")
     s.set_defaults(func=cmd_join_detectors)
+
+    s = sub.add_parser("tune-heads", help="choose on renders how much the distance leans on the trees for detector boxes")
+    s.add_argument("--model", required=True, help="bundle folder with a detector")
+    s.add_argument("--data", required=True, help="a 'synth' split or scene (renders no training used; never the "
+                                                 "evaluation frames)")
+    s.add_argument("--weights", type=float, nargs="+", metavar="W", help="the trees' shares to try (default 0 0.25 0.5 0.75)")
+    s.add_argument("--max-frames", type=positive_int, default=None, help="images per scene (default: all)")
+    s.add_argument("--out", help="write the tuned bundle here (default: in place)")
+    s.set_defaults(func=cmd_tune_heads)
 
     s = sub.add_parser("train-detector", help="train the 2D detector on synth scenes and add it to a bundle")
     s.add_argument("--data", required=True, help="a 'synth' split")

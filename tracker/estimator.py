@@ -22,6 +22,7 @@ class Detection:
     obj_id: int
     box: np.ndarray  # (x, y, w, h) in the frame's pixels
     score: float = 1.0
+    exact: bool = False  # a ground-truth box, not a detector's (the head weighs its distance cues by it)
 
 
 @dataclass
@@ -31,6 +32,18 @@ class PoseEstimate:
     t: np.ndarray
     score: float
     box: np.ndarray
+
+
+def trees_weights(manifest: dict) -> dict[str, float]:
+    """The distance-from-rotation trees' share of the log distance for exact (ground-truth)
+    boxes and for the detector's (``app.py tune-heads`` chooses the latter; default
+    :data:`tracker.regressors.TREES_WEIGHT` for both)."""
+    from .regressors import TREES_WEIGHT
+    tw = manifest.get("heads", {}).get("trees_weight", {})
+    out = {k: tw.get(k, TREES_WEIGHT) for k in ("exact", "detector")}
+    if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and 0 <= v <= 1 for v in out.values()):
+        raise UserError(f"manifest: heads.trees_weight must hold numbers in [0, 1], not {tw}; rebuild the bundle")
+    return {k: float(v) for k, v in out.items()}
 
 
 def make_session(path, threads: int = 1):
@@ -67,6 +80,7 @@ class PoseEstimator:
         self.session = make_session(self.bundle.path("encoder"), threads)
         from .regressors import PoseHead
         self.head = self.bundle.load_joblib("pose_head", PoseHead)
+        self.trees_weight = trees_weights(m)
         self.conditional = len(self.session.get_inputs()) > 1
         self._pools = None
         if single_thread_math:  # after the libraries are loaded: threadpoolctl sees only those
@@ -116,8 +130,9 @@ class PoseEstimator:
         if mode == "aae" and self.head.codebook is None:
             from .regressors import Codebook
             self.head.codebook = self.bundle.load_joblib("codebook", Codebook)
+        w = np.array([self.trees_weight["exact" if d.exact else "detector"] for d in dets])
         with self._pools.limit(limits=1) if self._pools is not None else contextlib.nullcontext():
-            R, t = self.head.predict(mu, ids, boxes, K, mode=mode)
+            R, t = self.head.predict(mu, ids, boxes, K, mode=mode, **({} if mode == "aae" else {"trees_weight": w}))
         if timings is not None:
             timings["encode"] = 1000 * (t1 - t0)
             timings["regress"] = 1000 * (time.perf_counter() - t1)

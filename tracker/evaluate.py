@@ -49,12 +49,17 @@ def gt_instances_with_boxes(gts, boxes, min_visib: float = 0.0, below: bool = Fa
 
 
 def evaluate(model_dir, scene_dir, json_path=None, boxes: str = "gt", mode: str = "regression",
-             bop_csv=None, max_frames: int | None = None, progress: bool = True) -> dict:
+             bop_csv=None, max_frames: int | None = None, progress: bool = True,
+             detector_trees_weight: float | None = None) -> dict:
+    """``detector_trees_weight``: the trees' share of the distance for the detector's boxes in
+    place of the bundle's (``app.py tune-heads`` tries several)."""
     from .meshes import load_models
     from .scoring import score_results, write_metrics_json
     if boxes not in ("gt", "detector"):
         raise UserError(f"--boxes must be gt or detector, not '{boxes}'")
     est = PoseEstimator(model_dir)
+    if detector_trees_weight is not None:
+        est.trees_weight["detector"] = float(detector_trees_weight)
     detector = None
     if boxes == "detector":
         from .detector import Detector
@@ -79,7 +84,7 @@ def evaluate(model_dir, scene_dir, json_path=None, boxes: str = "gt", mode: str 
             all_dets.append(dets)
             all_candidates.append(candidates)
         else:
-            dets = [Detection(o, b) for o, b, _ in gt_instances_with_boxes(scene.gt[im_id], box_of[im_id])]
+            dets = [Detection(o, b, exact=True) for o, b, _ in gt_instances_with_boxes(scene.gt[im_id], box_of[im_id])]
         poses = est.estimate(img, scene.K(im_id), dets, mode=mode)
         dt = time.perf_counter() - t0
         t_all += dt

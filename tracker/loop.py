@@ -70,7 +70,7 @@ def _gt_detections(frame, boxes_of, known) -> list[Detection]:
     """Ground-truth visible boxes of the bundle's objects that are at least 10 % visible."""
     from .evaluate import gt_instances_with_boxes
     if boxes_of is not None and frame.index in boxes_of:
-        return [Detection(o, b) for o, b, _ in gt_instances_with_boxes(frame.gt, boxes_of[frame.index], 0.1)
+        return [Detection(o, b, exact=True) for o, b, _ in gt_instances_with_boxes(frame.gt, boxes_of[frame.index], 0.1)
                 if o in known]
     return []
 

@@ -370,6 +370,10 @@ def apparent_size(boxes, K) -> np.ndarray:
 # --------------------------------------------------------------------------- the pose head
 
 
+# the distance-from-rotation trees' share of the log distance (the rest: the latent MLP's)
+TREES_WEIGHT = 0.5
+
+
 class PoseHead:
     """Latent code + box -> pose, by regression (the thesis) or by the AAE codebook.
 
@@ -399,8 +403,10 @@ class PoseHead:
         except KeyError as e:
             raise UserError(f"object {e.args[0]} is not in this bundle (has {self.obj_ids})") from None
 
-    def predict(self, mu, obj_ids, boxes, K, mode: str = "regression"):
-        """Poses (R (N, 3, 3), t (N, 3) mm) for latent codes ``mu`` of crops cut from ``boxes``."""
+    def predict(self, mu, obj_ids, boxes, K, mode: str = "regression", trees_weight: float = TREES_WEIGHT):
+        """Poses (R (N, 3, 3), t (N, 3) mm) for latent codes ``mu`` of crops cut from ``boxes``;
+        ``trees_weight`` (one, or one per crop): the distance-from-rotation trees' share of the log
+        distance, the latent MLP's the rest (0: the trees are not run)."""
         idx = self.index(obj_ids)
         n = len(self.obj_ids)
         boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
@@ -411,9 +417,10 @@ class PoseHead:
         R = self.rotation.predict(rotation_inputs(mu, idx, n))
         offset = self.centre.predict(centre_inputs(mu, idx, n, boxes, K))
         log_tz_size = np.ravel(self.distance.predict(distance_inputs(mu, idx, n, boxes, K)))  # KNN: (N,), MLP: (N, 1)
-        if self.distance_by_rotation is not None:
+        if self.distance_by_rotation is not None and np.any(np.asarray(trees_weight) > 0):
             by_r = np.ravel(self.distance_by_rotation.predict(distance_by_rotation_inputs(R, idx, n, boxes, K)))
-            log_tz_size = 0.5 * (log_tz_size + by_r)
+            w = np.broadcast_to(np.asarray(trees_weight, np.float64), log_tz_size.shape)
+            log_tz_size = (1 - w) * log_tz_size + w * by_r
         return self.assemble(R, offset, np.exp(log_tz_size), boxes, K)
 
     def assemble(self, R, offset, tz_size, boxes, K):
@@ -470,13 +477,13 @@ class HeadEnsemble(PoseHead):
                 "trees": None if trees[0] is None else StackedTrees(trees)}
         return self._stacked
 
-    def member_poses(self, mu, obj_ids, boxes, K):
+    def member_poses(self, mu, obj_ids, boxes, K, trees_weight: float = TREES_WEIGHT):
         """Every member's poses, (M, N, 3, 3) and (M, N, 3): stacked where the members allow it
         (measured, seven members, 8 crops,
         interleaved: 8.2-11.3 against 11.7-15.8 ms), else one member after another."""
         st = self.stacked()
         if st is None:
-            Rs, ts = zip(*(h.predict(mu, obj_ids, boxes, K) for h in self.members))
+            Rs, ts = zip(*(h.predict(mu, obj_ids, boxes, K, trees_weight=trees_weight) for h in self.members))
             return np.stack(Rs), np.stack(ts)
         idx, n, M, N = self.index(obj_ids), len(self.obj_ids), len(self.members), len(mu)
         boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
@@ -485,18 +492,19 @@ class HeadEnsemble(PoseHead):
         log_tz_size = st["distance"].forward(distance_inputs(mu, idx, n, boxes, K))[..., 0]
         K = np.asarray(K, dtype=np.float64)
         all_boxes, all_K = np.tile(boxes, (M, 1)), (K if K.ndim == 2 else np.tile(K, (M, 1, 1)))
-        if st["trees"] is not None:
+        if st["trees"] is not None and np.any(np.asarray(trees_weight) > 0):
             X = distance_by_rotation_inputs(R.reshape(-1, 3, 3), np.tile(idx, M), n, all_boxes, all_K)
-            log_tz_size = 0.5 * (log_tz_size + st["trees"].predict(X.reshape(M, N, -1)))
+            w = np.broadcast_to(np.asarray(trees_weight, np.float64), (N,))
+            log_tz_size = (1 - w) * log_tz_size + w * st["trees"].predict(X.reshape(M, N, -1))
         R, t = self.assemble(R.reshape(-1, 3, 3), offset.reshape(-1, 2), np.exp(log_tz_size).ravel(), all_boxes, all_K)
         return R.reshape(M, N, 3, 3), t.reshape(M, N, 3)
 
-    def predict(self, mu, obj_ids, boxes, K, mode: str = "regression"):
+    def predict(self, mu, obj_ids, boxes, K, mode: str = "regression", trees_weight: float = TREES_WEIGHT):
         if mode == "aae":
             first = self.members[0]
             first.codebook = self.codebook
             return first.predict(mu, obj_ids, boxes, K, mode=mode)
-        Rs, ts = self.member_poses(mu, obj_ids, boxes, K)
+        Rs, ts = self.member_poses(mu, obj_ids, boxes, K, trees_weight=trees_weight)
         for n, o in enumerate(obj_ids):
             S = self.symmetries[int(o)]
             if len(S) > 1:  # the symmetry of each member's estimate nearest the first member's

@@ -61,7 +61,7 @@ def latent_tsne(model_dir, scene_dir, seed: int = 0, max_frames=None):
     boxes, _ = gt_boxes(scene, models, ids)
     mus, objs = [], []
     for i in ids:
-        dets = [Detection(o, b) for o, b, _ in gt_instances_with_boxes(scene.gt[i], boxes[i], 0.1)]
+        dets = [Detection(o, b, exact=True) for o, b, _ in gt_instances_with_boxes(scene.gt[i], boxes[i], 0.1)]
         if dets:
             mus.append(est.encode(est.crops(scene.read_rgb(i), [d.box for d in dets]), [d.obj_id for d in dets]))
             objs += [d.obj_id for d in dets]
