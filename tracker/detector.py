@@ -130,7 +130,8 @@ def decode(maps: np.ndarray, spec: DetectorSpec, lb: Letterbox | None = None,
     out: list[Detection] = []
     for c in np.unique(ci):
         m = np.nonzero(ci == c)[0]
-        keep = nms(boxes[m], sc[m], spec.nms_iou)[:spec.max_per_class]
+        # one per object: the best peak, which NMS would keep first (ties: the first, as NMS)
+        keep = [int(np.argmax(sc[m]))] if spec.max_per_class == 1 else nms(boxes[m], sc[m], spec.nms_iou)[:spec.max_per_class]
         out += [Detection(int(spec.classes[c]), boxes[m[j]], float(sc[m[j]])) for j in keep]
     out.sort(key=lambda d: -d.score)
     return out[:spec.max_dets]
