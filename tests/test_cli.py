@@ -35,6 +35,15 @@ def test_join_detectors_bad_input_is_a_one_line_error(tmp_path):
     assert not (tmp_path / "j").exists()
 
 
+def test_tune_heads_bad_input_is_a_one_line_error(tmp_path):
+    p = run("tune-heads", "--model", REPO / "models" / "lmo", "--data", tmp_path, "--out", tmp_path / "t")
+    assert_one_line_error(p)
+    assert "no BOP scene folders" in p.stderr and not (tmp_path / "t").exists()
+    p = run("tune-heads", "--model", REPO / "models" / "lmo", "--data", tmp_path, "--weights", "2")
+    assert_one_line_error(p)
+    assert "[0, 1]" in p.stderr
+
+
 def test_bad_bundle_and_bad_source_are_one_line_errors(tmp_path, data_dir):
     p = run("track", "--source", data_dir / "lmo" / "dev", "--model", tmp_path / "no-bundle", "--max-frames", 1)
     assert_one_line_error(p)

@@ -246,7 +246,8 @@ def join_detectors(model_dir, others, out_dir=None, int8_data=None, calibration_
             (stage / src.manifest["artefacts"]["detector"]).write_bytes(final.read_bytes())
             write_manifest(stage, m)
     manifest = read_verified_manifest(out)
-    dest = out / src.manifest["artefacts"]["detector"]
-    log(f"bundle {out}: a detector averaging {len(members)} network{'s' if len(members) > 1 else ''}"
-        + {"none": "", "both": " on the image and its mirror image", "alternate": ", the image and its mirror image by turns"}[mirror] + (" (int8)" if int8_data is not None else "") + f", {dest.stat().st_size / 1e6:.1f} MB")
+    size = (out / src.manifest["artefacts"]["detector"]).stat().st_size / 1e6
+    seen = {"none": "", "both": " on the image and its mirror image", "alternate": ", the image and its mirror image by turns"}
+    log(f"bundle {out}: a detector averaging {len(members)} network{'s' if len(members) > 1 else ''}{seen[mirror]}"
+        + (" (int8)" if int8_data is not None else "") + f", {size:.1f} MB")
     return manifest

@@ -132,7 +132,7 @@ class PoseEstimator:
             self.head.codebook = self.bundle.load_joblib("codebook", Codebook)
         w = np.array([self.trees_weight["exact" if d.exact else "detector"] for d in dets])
         with self._pools.limit(limits=1) if self._pools is not None else contextlib.nullcontext():
-            R, t = self.head.predict(mu, ids, boxes, K, mode=mode, **({} if mode == "aae" else {"trees_weight": w}))
+            R, t = self.head.predict(mu, ids, boxes, K, mode=mode, trees_weight=w)
         if timings is not None:
             timings["encode"] = 1000 * (t1 - t0)
             timings["regress"] = 1000 * (time.perf_counter() - t1)

@@ -37,13 +37,13 @@ def tune_trees_weight(model_dir, data, weights=WEIGHTS, out_dir=None, max_frames
     weights = sorted({float(w) for w in weights})
     if not weights or any(not 0 <= w <= 1 for w in weights):
         raise UserError(f"--weights must lie in [0, 1], got {weights}")
+    scenes = _scenes(data)
     b = open_bundle(model_dir)
     if "detector" not in b.manifest:
         raise UserError(f"{model_dir}: this bundle has no detector; the weight is for the detector's boxes")
     head = PoseEstimator(b).head
     if not any(getattr(h, "distance_by_rotation", None) is not None for h in getattr(head, "members", [head])):
         raise UserError(f"{model_dir}: its pose head has no distance-from-rotation trees; nothing to tune")
-    scenes = _scenes(data)
     table = {}
     with tempfile.TemporaryDirectory() as tmp:
         for w in weights:
