@@ -57,7 +57,8 @@ def tune_trees_weight(model_dir, data, weights=WEIGHTS, out_dir=None, max_frames
             table[w] = {f: round(v / max(n, 1), 4) for f, v in sums.items()} | {"instances": n}
             log(f"trees weight {w:.2f}: ADD(I) {table[w]['add_recall']:.3f}, AR_MSSD {table[w]['ar_mssd']:.3f}, "
                 f"AR_MSPD {table[w]['ar_mspd']:.3f}, TE median {table[w]['te_median_mm']:.1f} mm ({n} instances)")
-    best = max(weights, key=lambda w: (table[w]["add_recall"], table[w]["ar_mssd"]))
+    current = trees_weights(b.manifest)["detector"]
+    best = max(weights, key=lambda w: (table[w]["add_recall"], table[w]["ar_mssd"], w == current))  # ties: keep
     out = Path(out_dir) if out_dir else b.root
     m = {k: v for k, v in b.manifest.items() if k not in ("files", "format")}
     m["name"] = out.name
