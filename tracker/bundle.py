@@ -124,11 +124,17 @@ def staged_bundle(src_root, out):
     shutil.rmtree(old, ignore_errors=True)
 
 
+def manifest_fields(manifest: dict) -> dict:
+    """A manifest without what :func:`write_manifest` derives (the files' hashes, the format):
+    what a job that changes a bundle edits and writes back."""
+    return {k: v for k, v in manifest.items() if k not in ("files", "format")}
+
+
 def update_manifest(bundle_dir, change) -> dict:
     """Verify a bundle, let ``change(manifest)`` edit its manifest (files already written into
     the folder), then re-hash every file. Returns the new manifest."""
     b = open_bundle(bundle_dir)
-    manifest = {k: v for k, v in b.manifest.items() if k not in ("files", "format")}
+    manifest = manifest_fields(b.manifest)
     change(manifest)
     write_manifest(b.root, manifest)
     return read_verified_manifest(b.root)

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .bundle import open_bundle, read_verified_manifest, sha256, staged_bundle, write_manifest
+from .bundle import manifest_fields, open_bundle, read_verified_manifest, sha256, staged_bundle, write_manifest
 from .detector import DetectorSpec, letterbox, normalise
 from .errors import UserError
 
@@ -237,7 +237,7 @@ def join_detectors(model_dir, others, out_dir=None, int8_data=None, calibration_
                  "box_channels_mean_abs_diff": float(np.abs(got[:, C:] - ref[:, C:]).mean())}
             log(f"int8 against float on {len(x_check)} calibration images: heatmaps max |diff| "
                 f"{q['heatmap_max_abs_diff']:.3f}, box channels mean |diff| {q['box_channels_mean_abs_diff']:.4f}")
-        m = {k: v for k, v in src.manifest.items() if k not in ("files", "format")}
+        m = manifest_fields(src.manifest)
         m["name"] = out.name
         m["detector"] = {**d0, "ensemble": info, **({"int8": q} if int8_data is not None else {})}
         if score_thresh is not None:

@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 
 from .bop import load_models_info, symmetry_rotations
-from .bundle import open_bundle, read_verified_manifest, staged_bundle, write_manifest
+from .bundle import manifest_fields, open_bundle, read_verified_manifest, staged_bundle, write_manifest
 from .errors import UserError
 from .regressors import HeadEnsemble, PoseHead
 
@@ -47,7 +47,7 @@ def join_heads(model_dir, others, out_dir=None, log=print, command: str | None =
     ensemble = HeadEnsemble(heads, syms)
     out = Path(out_dir) if out_dir else src.root
     import joblib
-    m = {k: v for k, v in src.manifest.items() if k not in ("files", "format")}
+    m = manifest_fields(src.manifest)
     m["name"] = out.name
     m["heads"] = {**src.manifest.get("heads", {}),
                   "ensemble": {"members": len(ensemble.members), "from": names,

@@ -374,6 +374,18 @@ def apparent_size(boxes, K) -> np.ndarray:
 TREES_WEIGHT = 0.5
 
 
+def trees_used(trees_weight) -> bool:
+    """Whether any crop gives the trees a share (else they need not run)."""
+    return bool(np.any(np.asarray(trees_weight) > 0))
+
+
+def mix_log_distance(latent, trees, trees_weight):
+    """The log distance: the trees' share ``trees_weight`` (one, or one per crop: the last axis)
+    of theirs, the rest the latent MLP's."""
+    w = np.asarray(trees_weight, np.float64)
+    return (1 - w) * latent + w * trees
+
+
 class PoseHead:
     """Latent code + box -> pose, by regression (the thesis) or by the AAE codebook.
 
@@ -417,10 +429,9 @@ class PoseHead:
         R = self.rotation.predict(rotation_inputs(mu, idx, n))
         offset = self.centre.predict(centre_inputs(mu, idx, n, boxes, K))
         log_tz_size = np.ravel(self.distance.predict(distance_inputs(mu, idx, n, boxes, K)))  # KNN: (N,), MLP: (N, 1)
-        if self.distance_by_rotation is not None and np.any(np.asarray(trees_weight) > 0):
+        if self.distance_by_rotation is not None and trees_used(trees_weight):
             by_r = np.ravel(self.distance_by_rotation.predict(distance_by_rotation_inputs(R, idx, n, boxes, K)))
-            w = np.broadcast_to(np.asarray(trees_weight, np.float64), log_tz_size.shape)
-            log_tz_size = (1 - w) * log_tz_size + w * by_r
+            log_tz_size = mix_log_distance(log_tz_size, by_r, trees_weight)
         return self.assemble(R, offset, np.exp(log_tz_size), boxes, K)
 
     def assemble(self, R, offset, tz_size, boxes, K):
@@ -492,10 +503,9 @@ class HeadEnsemble(PoseHead):
         log_tz_size = st["distance"].forward(distance_inputs(mu, idx, n, boxes, K))[..., 0]
         K = np.asarray(K, dtype=np.float64)
         all_boxes, all_K = np.tile(boxes, (M, 1)), (K if K.ndim == 2 else np.tile(K, (M, 1, 1)))
-        if st["trees"] is not None and np.any(np.asarray(trees_weight) > 0):
+        if st["trees"] is not None and trees_used(trees_weight):
             X = distance_by_rotation_inputs(R.reshape(-1, 3, 3), np.tile(idx, M), n, all_boxes, all_K)
-            w = np.broadcast_to(np.asarray(trees_weight, np.float64), (N,))
-            log_tz_size = (1 - w) * log_tz_size + w * st["trees"].predict(X.reshape(M, N, -1))
+            log_tz_size = mix_log_distance(log_tz_size, st["trees"].predict(X.reshape(M, N, -1)), trees_weight)
         R, t = self.assemble(R.reshape(-1, 3, 3), offset.reshape(-1, 2), np.exp(log_tz_size).ravel(), all_boxes, all_K)
         return R.reshape(M, N, 3, 3), t.reshape(M, N, 3)
 

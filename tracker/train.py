@@ -388,7 +388,7 @@ def refit_heads(model_dir, data_dir, out_dir=None, seed: int = 0, reg_minutes: f
     trees existed). ``jitter_scale``: the log-size noise of the jittered boxes (default
     :data:`~tracker.crops.JITTER_SCALE`, what the autoencoder trained on)."""
     _torch()  # the MLPs train with torch
-    from .bundle import read_verified_manifest, staged_bundle, write_manifest
+    from .bundle import manifest_fields, read_verified_manifest, staged_bundle, write_manifest
     from .crops import JITTER_SCALE, bundle_training_crops, crops_cache_path, train_val_split
     from .estimator import PoseEstimator
     jitter_scale = JITTER_SCALE if jitter_scale is None else jitter_scale
@@ -436,7 +436,7 @@ def refit_heads(model_dir, data_dir, out_dir=None, seed: int = 0, reg_minutes: f
                                                seed=seed, n_jittered=len(cs), keep=keep, log=log,
                                                reg_epochs=reg_epochs)
     import joblib
-    m = {k: v for k, v in src.manifest.items() if k not in ("files", "format")}
+    m = manifest_fields(src.manifest)
     m["name"] = out.name
     old = src.manifest.get("heads", {})
     if keep is None:

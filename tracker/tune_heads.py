@@ -15,7 +15,7 @@ import time
 from pathlib import Path
 
 from .bop import is_scene_dir
-from .bundle import open_bundle, read_verified_manifest, staged_bundle, write_manifest
+from .bundle import manifest_fields, open_bundle, read_verified_manifest, staged_bundle, write_manifest
 from .errors import UserError
 
 WEIGHTS = (0.0, 0.25, 0.5, 0.75)
@@ -32,8 +32,9 @@ def tune_trees_weight(model_dir, data, weights=WEIGHTS, out_dir=None, max_frames
     """Write ``out_dir`` (default: ``model_dir`` in place) with ``heads.trees_weight.detector``
     set to the best of ``weights`` on ``data`` (a ``synth`` split or scene: renders, never the
     evaluation frames), ``max_frames`` per scene."""
-    from .estimator import PoseEstimator, trees_weights
+    from .estimator import trees_weights
     from .evaluate import evaluate
+    from .regressors import PoseHead
     weights = sorted({float(w) for w in weights})
     if not weights or any(not 0 <= w <= 1 for w in weights):
         raise UserError(f"--weights must lie in [0, 1], got {weights}")
@@ -41,7 +42,8 @@ def tune_trees_weight(model_dir, data, weights=WEIGHTS, out_dir=None, max_frames
     b = open_bundle(model_dir)
     if "detector" not in b.manifest:
         raise UserError(f"{model_dir}: this bundle has no detector; the weight is for the detector's boxes")
-    head = PoseEstimator(b).head
+    head = b.load_joblib("pose_head", PoseHead)
+    weights_now = trees_weights(b.manifest)
     if not any(getattr(h, "distance_by_rotation", None) is not None for h in getattr(head, "members", [head])):
         raise UserError(f"{model_dir}: its pose head has no distance-from-rotation trees; nothing to tune")
     table = {}
@@ -57,13 +59,13 @@ def tune_trees_weight(model_dir, data, weights=WEIGHTS, out_dir=None, max_frames
             table[w] = {f: round(v / max(n, 1), 4) for f, v in sums.items()} | {"instances": n}
             log(f"trees weight {w:.2f}: ADD(I) {table[w]['add_recall']:.3f}, AR_MSSD {table[w]['ar_mssd']:.3f}, "
                 f"AR_MSPD {table[w]['ar_mspd']:.3f}, TE median {table[w]['te_median_mm']:.1f} mm ({n} instances)")
-    current = trees_weights(b.manifest)["detector"]
-    best = max(weights, key=lambda w: (table[w]["add_recall"], table[w]["ar_mssd"], w == current))  # ties: keep
+    best = max(weights, key=lambda w: (table[w]["add_recall"], table[w]["ar_mssd"],
+                                       w == weights_now["detector"]))  # ties: keep the bundle's
     out = Path(out_dir) if out_dir else b.root
-    m = {k: v for k, v in b.manifest.items() if k not in ("files", "format")}
+    m = manifest_fields(b.manifest)
     m["name"] = out.name
     m["heads"] = {**m.get("heads", {}), "trees_weight": {
-        "exact": trees_weights(b.manifest)["exact"], "detector": best, "chosen_on": str(data),
+        "exact": weights_now["exact"], "detector": best, "chosen_on": str(data),
         "by_weight": {str(w): v for w, v in table.items()}, "max_frames": max_frames,
         "command": command or "app.py " + " ".join(sys.argv[1:]), "created": time.strftime("%Y-%m-%d %H:%M:%S")}}
     with staged_bundle(b.root, out) as stage:
