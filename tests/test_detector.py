@@ -238,6 +238,71 @@ def test_a_detector_can_start_from_another_runs_weights(tiny_detector_bundle, ti
                        init_from=tmp_path / "junk.pt", log=lambda *a: None)
 
 
+def test_a_detector_can_start_from_a_bundles_exported_network(tiny_detector_bundle, tiny_bundle, tmp_path, monkeypatch):
+    """Weights read back from the ONNX graph (BatchNorms folded) give the exported network's
+    output; the fine-tune keeps its BatchNorms frozen, and joined networks are refused."""
+    pytest.importorskip("onnx")
+    from tracker.bundle import open_bundle
+    from tracker.detector_train import _init_weights, train_detector
+    from tracker.nets.detector import CenterNetLite
+    from tracker.train import _torch
+    torch = _torch()
+    classes = open_bundle(tiny_detector_bundle).manifest["detector"]["classes"]
+    sd, frozen = _init_weights(torch, tiny_detector_bundle, 8, classes)  # checks itself against onnxruntime
+    assert frozen
+    m = CenterNetLite(len(classes), 8)
+    m.load_state_dict(sd)
+    bns = [b for b in m.modules() if isinstance(b, torch.nn.BatchNorm2d)]
+    assert bns and all(torch.all(b.running_mean == 0) and torch.all(b.weight == 1) for b in bns)
+    with pytest.raises(UserError, match="not a width-4 network"):
+        _init_weights(torch, tiny_detector_bundle, 4, classes)
+    with pytest.raises(UserError, match="classes"):
+        _init_weights(torch, tiny_detector_bundle, 8, classes[:-1])
+    root = tmp_path / "lmo"
+    shutil.copytree(tiny_bundle, root)
+    seen = []
+    import tracker.nets.detector as nd
+    freeze = nd.freeze_batchnorm
+    monkeypatch.setattr(nd, "freeze_batchnorm", lambda model: (seen.append(1), freeze(model)))
+    train_detector(tiny_bundle.parent / "split", root, minutes=0.01, width=8, batch=2, init_from=tiny_detector_bundle,
+                   lr=1e-4, log=lambda *a: None)
+    d = open_bundle(root).manifest["detector"]["training"]
+    assert seen and d["frozen_batchnorm"] is True and d["init_from"] == str(tiny_detector_bundle)
+    joined = tmp_path / "joined"
+    from tracker.detector_ensemble import join_detectors
+    join_detectors(tiny_detector_bundle, [], out_dir=joined, mirror="both", log=lambda *a: None)
+    with pytest.raises(UserError, match="joined or quantised already; start from the bundle of one"):
+        _init_weights(torch, joined, 8, classes)
+
+
+def test_amodal_targets_are_whole_silhouettes_clipped_to_the_image(tiny_bundle, tmp_path):
+    from tracker.detector import DetectorSpec
+    from tracker.detector_ensemble import join_detectors
+    from tracker.detector_train import load_detection_set, target_box, train_detector
+    info = {"bbox_visib": [10, 20, 30, 40], "bbox_obj": [-5, 15, 50, 60]}
+    assert target_box(info, "visible", 640, 480) == [10, 20, 30, 40]
+    assert target_box(info, "amodal", 40, 480) == [0, 15, 40, 60]
+    assert target_box({"bbox_visib": [10, 20, 30, 40], "bbox_obj": [11, 19, 28, 40]}, "amodal", 640, 480) == [10, 19, 30, 41]
+    split = tiny_bundle.parent / "split"
+    classes = [1, 5, 6, 8, 9, 10, 11, 12]
+    _, vis = load_detection_set(split, DetectorSpec(classes=classes), max_images=3, log=lambda *a: None)
+    _, am = load_detection_set(split, DetectorSpec(classes=classes, boxes="amodal"), max_images=3, log=lambda *a: None)
+    v, a = np.concatenate(vis), np.concatenate(am)
+    assert len(v) == len(a) and np.all(a[:, 3] * a[:, 4] >= v[:, 3] * v[:, 4] - 1e-3)
+    with pytest.raises(UserError, match="--boxes must be one of visible, amodal"):
+        train_detector(split, tiny_bundle, minutes=0.01, boxes="whole")
+    pytest.importorskip("torch")
+    quiet = dict(log=lambda *a: None)
+    a_dir, v_dir = tmp_path / "amodal", tmp_path / "visible"
+    for d, kind in ((a_dir, "amodal"), (v_dir, "visible")):
+        shutil.copytree(tiny_bundle, d)
+        train_detector(split, d, minutes=0.01, width=4, batch=2, boxes=kind, **quiet)
+    from tracker.bundle import open_bundle
+    assert open_bundle(a_dir).manifest["detector"]["boxes"] == "amodal"
+    with pytest.raises(UserError, match="differs from .* in boxes"):
+        join_detectors(v_dir, [a_dir], out_dir=tmp_path / "j", **quiet)
+
+
 def test_a_run_resumes_only_with_its_own_options(tiny_detector_bundle, tiny_bundle, tmp_path):
     from tracker.detector_train import train_detector
     root = tmp_path / "lmo"

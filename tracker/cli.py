@@ -182,7 +182,7 @@ def cmd_train_detector(args) -> int:
                        input_h=args.input[1], batch=args.batch, seed=args.seed, max_images=args.max_images,
                        lr=args.lr, init_from=args.init_from, occlusion=args.occlusion, paste_objects=args.paste_objects,
                        cutouts=args.cutouts, cutout_share=args.cutout_share,
-                       precision=args.precision, command="app.py " + " ".join(sys.argv[1:]))
+                       precision=args.precision, boxes=args.boxes, command="app.py " + " ".join(sys.argv[1:]))
     v = d["training"]["validation_synthetic"]
     from .report import fmt_num
     print(f"detector added to {args.model}: synthetic validation AP {fmt_num(v['ap'])}, AP50 {fmt_num(v['ap50'])}")
@@ -553,8 +553,13 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--lr", type=positive_float, default=2e-3, help="peak learning rate (lower to fine-tune)")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--max-images", type=positive_int, default=None, help="use only the first N images")
-    s.add_argument("--init-from", metavar="CKPT",
-                   help="start from another run's detector_ckpt_*.pt (same width and classes), e.g. to fine-tune on new data")
+    s.add_argument("--init-from", metavar="CKPT|BUNDLE",
+                   help="start from another run's detector_ckpt_*.pt (same width and classes), e.g. to fine-tune on "
+                        "new data, or from a bundle whose detector is one float network (its weights read back from "
+                        "the ONNX graph; its BatchNorms then stay frozen)")
+    s.add_argument("--boxes", choices=("visible", "amodal"), default="visible",
+                   help="what the boxes cover: the visible part of each object, or its whole silhouette clipped "
+                        "to the image (amodal: size and centre follow the object behind occluders)")
     s.add_argument("--occlusion", type=fraction, default=0.0, metavar="P",
                    help="share of training images that get clutter pasted over them (occlusion augmentation)")
     s.add_argument("--paste-objects", type=fraction, default=0.0, metavar="P",

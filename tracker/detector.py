@@ -39,6 +39,7 @@ class DetectorSpec:
     max_dets: int = 32
     pad_value: int = 114
     file: str = "detector.onnx"
+    boxes: str = "visible"           # what a box covers: the visible part, or the whole object ("amodal")
 
     def to_dict(self) -> dict:
         return asdict(self)

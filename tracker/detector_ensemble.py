@@ -17,19 +17,20 @@ from .detector import DetectorSpec, letterbox, normalise
 from .errors import UserError
 
 # what every member must share for one letterbox, one normalisation and one decoder to serve all
-CONTRACT = ("classes", "input_w", "input_h", "stride", "mean", "std", "pad_value")
+CONTRACT = ("classes", "input_w", "input_h", "stride", "mean", "std", "pad_value", "boxes")
 CALIBRATION_IMAGES = 200
 
 
-def _member(path):
-    """(bundle, its detector's spec, its manifest entry, its ONNX file): a detector that can join."""
+def _member(path, use: str = "join the detectors it was made from"):
+    """(bundle, its detector's spec, its manifest entry, its ONNX file): a single float
+    detector (one that can join, or be fine-tuned from)."""
     b = open_bundle(path)
     m = b.manifest
     if "detector" not in m or "detector" not in m.get("artefacts", {}):
         raise UserError(f"{path}: this bundle has no detector; train one with 'app.py train-detector'")
     d = m["detector"]
     if "ensemble" in d or "int8" in d:
-        raise UserError(f"{path}: its detector is joined or quantised already; join the detectors it was made from")
+        raise UserError(f"{path}: its detector is joined or quantised already; {use}")
     return b, DetectorSpec.from_dict(d), d, b.path("detector")
 
 
@@ -210,7 +211,7 @@ def join_detectors(model_dir, others, out_dir=None, int8_data=None, calibration_
         diff = [k for k in CONTRACT if getattr(spec, k) != getattr(spec0, k)]
         if diff:
             raise UserError(f"{path}: its detector differs from {model_dir}'s in {', '.join(diff)}; "
-                            "only detectors of the same classes, input and normalisation can be averaged")
+                            "only detectors of the same classes, input, normalisation and kind of box can be averaged")
     out = Path(out_dir) if out_dir else src.root
     with tempfile.TemporaryDirectory() as tmp:
         joined = Path(tmp) / "joined.onnx"

@@ -32,12 +32,25 @@ MIN_VISIB = 0.1
 CUTOUT_MAX_SIDE = 160  # px a cut-out is kept at; pastes reach 40 % of the input width (128 px at 320)
 CUTOUT_SHARE = 0.5     # share of training images that get cut-outs when --cutouts is given
 # recipe keys added after checkpoints were first written, at the value a run without them records
-RECIPE_ADDED = {"cutouts": None, "cutout_share": 0.0}
+RECIPE_ADDED = {"cutouts": None, "cutout_share": 0.0, "boxes": "visible", "frozen_batchnorm": False}
+BOX_KINDS = ("visible", "amodal")
+
+
+def target_box(info: dict, kind: str, width: int, height: int) -> list[float]:
+    """An instance's training box (x, y, w, h) from its ``scene_gt_info`` entry: the visible
+    box, or (``amodal``) the whole silhouette's clipped to the image (with the visible box in
+    it: the silhouette is rendered in a window of its own, a pixel or two off at times)."""
+    if kind == "visible":
+        return list(info["bbox_visib"])
+    (x, y, w, h), (vx, vy, vw, vh) = info["bbox_obj"], info["bbox_visib"]
+    x0, y0 = max(min(x, vx), 0), max(min(y, vy), 0)
+    return [x0, y0, min(max(x + w, vx + vw), width) - x0, min(max(y + h, vy + vh), height) - y0]
 
 
 def load_detection_set(split_dir, spec: DetectorSpec, cache: Path | None = None, max_images=None, log=print):
     """Letterboxed images (N, H, W, 3) uint8 and per image an (n, 5) array [class, x, y, w, h]
-    of visible boxes (visib >= 0.1) in network-input pixels."""
+    of the boxes ``spec.boxes`` names (visible or amodal; instances with visib >= 0.1) in
+    network-input pixels."""
     if cache is not None and cache.is_file():
         with np.load(cache, allow_pickle=False) as z:
             images, boxes = z["images"], np.split(z["boxes"], np.cumsum(z["counts"])[:-1])
@@ -55,8 +68,9 @@ def load_detection_set(split_dir, spec: DetectorSpec, cache: Path | None = None,
         for im_id in tqdm(scene.im_ids, desc=f"images {sdir.name}", unit="img", leave=False):
             if len(imgs) >= total:
                 break
-            img, lb = letterbox(scene.read_rgb(im_id), spec.input_w, spec.input_h, spec.pad_value)
-            b = [[lut[g.obj_id], *g.info["bbox_visib"]] for g in scene.gt[im_id]
+            rgb = scene.read_rgb(im_id)
+            img, lb = letterbox(rgb, spec.input_w, spec.input_h, spec.pad_value)
+            b = [[lut[g.obj_id], *target_box(g.info, spec.boxes, rgb.shape[1], rgb.shape[0])] for g in scene.gt[im_id]
                  if g.obj_id in lut and g.info.get("visib_fract", 0) >= MIN_VISIB and g.info["bbox_visib"][2] > 1]
             b = np.array(b, np.float32).reshape(-1, 5)
             b[:, 1:] = lb.to_input(b[:, 1:])
@@ -286,9 +300,14 @@ def augment_batch(x, boxes_list, rng: np.random.Generator, torch, occlusion: flo
     return x.clamp(0, 1), out_boxes
 
 
-def _init_weights(torch, path, width: int, classes: list[int]) -> dict:
-    """The network weights of another run's detector checkpoint, checked against this run's
-    width and classes (tensors and plain containers only are read: no code runs)."""
+def _init_weights(torch, path, width: int, classes: list[int]) -> tuple[dict, bool]:
+    """The network weights to start from, checked against this run's width and classes, and
+    whether the BatchNorms must stay frozen: another run's checkpoint (tensors and plain
+    containers only are read: no code runs), or a bundle whose detector is a single float
+    network (its manifest verified; the weights read back from its ONNX graph, where the
+    export folded the BatchNorms: ``nets.detector.state_from_export``)."""
+    if Path(path).is_dir():
+        return _weights_from_bundle(torch, path, width, classes), True
     try:
         z = torch.load(path, weights_only=True)
         ok = isinstance(z, dict) and z.get("width") == width and z.get("classes") == classes
@@ -296,11 +315,44 @@ def _init_weights(torch, path, width: int, classes: list[int]) -> dict:
             raise UserError(f"--init-from {path}: a detector of width {z.get('width') if isinstance(z, dict) else '?'} "
                             f"and classes {z.get('classes') if isinstance(z, dict) else '?'}, this run has width "
                             f"{width} and classes {classes}")
-        return z["model"]
+        return z["model"], bool(z.get("recipe", {}).get("frozen_batchnorm", False))
     except FileNotFoundError:
-        raise UserError(f"--init-from {path}: no such file (it takes a detector_ckpt_*.pt from a bundle's .work folder)") from None
+        raise UserError(f"--init-from {path}: no such file or bundle (it takes a detector_ckpt_*.pt from a bundle's "
+                        f".work folder, or a bundle folder)") from None
     except (RuntimeError, KeyError, ValueError, TypeError, EOFError, pickle.UnpicklingError) as e:
         raise UserError(f"--init-from {path}: not a detector checkpoint ({type(e).__name__})") from None
+
+
+def _weights_from_bundle(torch, path, width: int, classes: list[int]) -> dict:
+    import onnx
+    import onnxruntime as ort
+    from onnx import numpy_helper
+    from .detector_ensemble import _member
+    from .nets.detector import CenterNetLite, state_from_export
+    # verified; joined or int8 detectors refused
+    _, spec, _, onnx_path = _member(path, "start from the bundle of one of the networks it was made from")
+    if spec.classes != classes:
+        raise UserError(f"--init-from {path}: its detector has classes {spec.classes}, this run has {classes}")
+    g = onnx.load(str(onnx_path)).graph
+    init = {t.name: numpy_helper.to_array(t) for t in g.initializer}
+    convs = [n for n in g.node if n.op_type == "Conv"]
+    weights = [(init.get(n.input[1]), init.get(n.input[2]) if len(n.input) > 2 else None) for n in convs]
+    model = CenterNetLite(len(classes), width)
+    try:
+        if any(w is None for w, _ in weights):
+            raise ValueError("a convolution whose weights are not stored in the graph")
+        sd = state_from_export(model, weights)
+    except ValueError as e:
+        raise UserError(f"--init-from {path}: its detector is not a width-{width} network of this kind ({e})") from None
+    model.load_state_dict(sd)
+    x = np.random.default_rng(0).normal(0, 1, (1, 3, spec.input_h, spec.input_w)).astype(np.float32)
+    with torch.no_grad():
+        y = model.eval()(torch.from_numpy(x)).numpy()
+    sess = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])
+    diff = float(np.abs(sess.run(None, {sess.get_inputs()[0].name: x})[0] - y).max())
+    if diff > 1e-4:
+        raise UserError(f"--init-from {path}: the weights read back differ from its detector by {diff:.1e}")
+    return sd
 
 
 def _recipe_options(old: dict, new: dict) -> str:
@@ -321,7 +373,12 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
                    input_h: int = 240, batch: int = 32, lr: float = 2e-3, seed: int = 0, max_images=None,
                    val_parts: int = 20, threads: int = 2, init_from=None, occlusion: float = 0.0,
                    paste_objects: float = 0.0, cutouts=None, cutout_share: float | None = None, log=print,
-                   command: str | None = None, precision: str = "auto") -> dict:
+                   command: str | None = None, precision: str = "auto", boxes: str = "visible") -> dict:
+    """``boxes``: the targets are the objects' visible boxes, or their whole silhouettes'
+    (``amodal``, clipped to the image: a box's size and centre then follow the object's
+    distance and position behind whatever hides part of it)."""
+    if boxes not in BOX_KINDS:
+        raise UserError(f"--boxes must be one of {', '.join(BOX_KINDS)}, not '{boxes}'")
     if paste_objects > 0 and occlusion <= 0:  # before torch is imported: nothing to wait for
         raise UserError("--paste-objects cuts some of the occlusion rectangles around objects: "
                         "it needs --occlusion above 0 as well")
@@ -333,20 +390,20 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     from .bundle import open_bundle, update_manifest
     from .detection_metrics import detection_ap
     from .nets import precision as prec
-    from .nets.detector import CenterNetLite, focal_loss
+    from .nets.detector import CenterNetLite, focal_loss, freeze_batchnorm
     from .report import fmt_num
     bundle = open_bundle(bundle_dir)  # verified before anything is changed
     torch.set_num_threads(threads)
     torch.manual_seed(seed)
     precision = prec.resolve(precision)
-    spec = DetectorSpec(classes=[int(o["id"]) for o in bundle.objects], input_w=input_w, input_h=input_h)
+    spec = DetectorSpec(classes=[int(o["id"]) for o in bundle.objects], input_w=input_w, input_h=input_h, boxes=boxes)
     root = Path(bundle_dir)
     work = work_dir(root)
     work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     # caches and checkpoints are keyed by the data, the classes and the network's shape
     key = hashlib.sha1(json.dumps([str(Path(data_dir).resolve()), spec.classes, input_w, input_h, max_images,
-                                   width]).encode()).hexdigest()[:10]
+                                   width] + ([boxes] if boxes != "visible" else [])).encode()).hexdigest()[:10]
     images, boxes = load_detection_set(data_dir, spec, work / f"det_images_{key}.npz", max_images, log)
     n = len(images)
     tr, va = train_val_split(n, seed, parts=val_parts)
@@ -360,11 +417,13 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
     ckpt = work / f"detector_ckpt_{key}.pt"
     state = {"step": 0, "seconds": 0.0, "history": []}
+    # weights to start from, and whether its BatchNorms stay frozen (a bundle's exported network)
+    init_weights, frozen = _init_weights(torch, init_from, width, spec.classes) if init_from else (None, False)
     # what a resumed run must share with the run that wrote the checkpoint (the data and the
     # network are in the key): otherwise one run silently mixes two augmentations or optimisers.
     # Not --minutes: a larger budget trains a finished run on (docs/models.md)
     recipe = {"batch": batch, "lr": lr, "seed": seed, "occlusion": occlusion, "paste_objects": paste_objects,
-              **RECIPE_ADDED}
+              **RECIPE_ADDED, "boxes": spec.boxes, "frozen_batchnorm": frozen}
     if cutouts:
         recipe.update(cutouts=cutout_set, cutout_share=CUTOUT_SHARE if cutout_share is None else cutout_share)
     if ckpt.is_file():
@@ -385,7 +444,7 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
         if init_from:
             log("--init-from ignored: resuming this run's own checkpoint")
     elif init_from:
-        model.load_state_dict(_init_weights(torch, init_from, width, spec.classes))
+        model.load_state_dict(init_weights)
         state["init_from"] = str(init_from)
         log(f"started from the weights of {init_from}; new optimiser, schedule and budget")
     budget = 60.0 * minutes
@@ -402,6 +461,8 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
 
     try:
         model.train()
+        if frozen:
+            freeze_batchnorm(model)
         prec.channels_last(model)
         while state["seconds"] < budget:
             frac = state["seconds"] / budget

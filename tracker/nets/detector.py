@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 from torch import nn
 from torch.nn import functional as F
@@ -56,3 +57,58 @@ def focal_loss(logits, target):
     neg_loss = torch.log(1 - p) * p ** 2 * (1 - target) ** 4 * neg
     n = pos.sum().clamp(min=1)
     return -(pos_loss.sum() + neg_loss.sum()) / n
+
+
+def convs_in_order(model: nn.Module) -> list[nn.Conv2d]:
+    """The model's convolutions in the order its forward pass runs them (the order of the
+    Conv nodes in its exported graph)."""
+    order = []
+    hooks = [m.register_forward_hook(lambda m, i, o: order.append(m)) for m in model.modules() if isinstance(m, nn.Conv2d)]
+    was_training = model.training
+    try:
+        with torch.no_grad():
+            model.eval()(torch.zeros(1, 3, 64, 64))
+    finally:
+        for h in hooks:
+            h.remove()
+        model.train(was_training)
+    return order
+
+
+def state_from_export(model: CenterNetLite, conv_weights: list[tuple]) -> dict:
+    """A state dict for ``model`` from its exported graph's convolutions, given as
+    ``[(weight, bias), ...]`` in graph order. The export folded each BatchNorm into the conv
+    before it, so that conv takes the folded weight and its BatchNorm becomes the identity plus
+    the folded bias (scale 1, mean 0, variance 1 - eps): the same function while the
+    BatchNorms stay frozen (``freeze_batchnorm``). ValueError where the shapes do not match."""
+    convs = convs_in_order(model)
+    if len(convs) != len(conv_weights):
+        raise ValueError(f"{len(conv_weights)} convolutions, this network has {len(convs)}")
+    names = {m: n for n, m in model.named_modules()}
+    modules = dict(model.named_modules())
+    sd = {k: v.clone() for k, v in model.state_dict().items()}
+    for conv, (w, b) in zip(convs, conv_weights):
+        name = names[conv]
+        if tuple(w.shape) != tuple(conv.weight.shape) or b is None or len(b) != conv.out_channels:
+            raise ValueError(f"a convolution of shape {tuple(w.shape)} where this network has {tuple(conv.weight.shape)}")
+        sd[name + ".weight"] = torch.from_numpy(np.array(w, np.float32))
+        if conv.bias is not None:
+            sd[name + ".bias"] = torch.from_numpy(np.array(b, np.float32))
+            continue
+        parent, i = name.rsplit(".", 1)
+        bn_name = f"{parent}.{int(i) + 1}"
+        bn = modules.get(bn_name)
+        if not isinstance(bn, nn.BatchNorm2d):
+            raise ValueError(f"{name} has no bias and no BatchNorm after it")
+        sd[bn_name + ".weight"] = torch.ones(conv.out_channels)
+        sd[bn_name + ".bias"] = torch.from_numpy(np.array(b, np.float32))
+        sd[bn_name + ".running_mean"] = torch.zeros(conv.out_channels)
+        sd[bn_name + ".running_var"] = torch.full((conv.out_channels,), 1.0 - bn.eps)
+    return sd
+
+
+def freeze_batchnorm(model: nn.Module) -> None:
+    """Keep every BatchNorm on its stored statistics (eval mode) while the rest trains."""
+    for m in model.modules():
+        if isinstance(m, nn.BatchNorm2d):
+            m.eval()
