@@ -268,6 +268,8 @@ def test_a_detector_can_start_from_a_bundles_exported_network(tiny_detector_bund
                    lr=1e-4, log=lambda *a: None)
     d = open_bundle(root).manifest["detector"]["training"]
     assert seen and d["frozen_batchnorm"] is True and d["init_from"] == str(tiny_detector_bundle)
+    with pytest.raises(UserError, match=r"with --init-from a bundle \(its BatchNorms frozen\): rerun"):
+        train_detector(tiny_bundle.parent / "split", root, minutes=0.02, width=8, batch=2, lr=1e-4, log=lambda *a: None)
     joined = tmp_path / "joined"
     from tracker.detector_ensemble import join_detectors
     join_detectors(tiny_detector_bundle, [], out_dir=joined, mirror="both", log=lambda *a: None)
@@ -290,13 +292,13 @@ def test_amodal_targets_are_whole_silhouettes_clipped_to_the_image(tiny_bundle, 
     v, a = np.concatenate(vis), np.concatenate(am)
     assert len(v) == len(a) and np.all(a[:, 3] * a[:, 4] >= v[:, 3] * v[:, 4] - 1e-3)
     with pytest.raises(UserError, match="--boxes must be one of visible, amodal"):
-        train_detector(split, tiny_bundle, minutes=0.01, boxes="whole")
+        train_detector(split, tiny_bundle, minutes=0.01, box_kind="whole")
     pytest.importorskip("torch")
     quiet = dict(log=lambda *a: None)
     a_dir, v_dir = tmp_path / "amodal", tmp_path / "visible"
     for d, kind in ((a_dir, "amodal"), (v_dir, "visible")):
         shutil.copytree(tiny_bundle, d)
-        train_detector(split, d, minutes=0.01, width=4, batch=2, boxes=kind, **quiet)
+        train_detector(split, d, minutes=0.01, width=4, batch=2, box_kind=kind, **quiet)
     from tracker.bundle import open_bundle
     assert open_bundle(a_dir).manifest["detector"]["boxes"] == "amodal"
     with pytest.raises(UserError, match="differs from .* in boxes"):

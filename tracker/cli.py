@@ -182,7 +182,7 @@ def cmd_train_detector(args) -> int:
                        input_h=args.input[1], batch=args.batch, seed=args.seed, max_images=args.max_images,
                        lr=args.lr, init_from=args.init_from, occlusion=args.occlusion, paste_objects=args.paste_objects,
                        cutouts=args.cutouts, cutout_share=args.cutout_share,
-                       precision=args.precision, boxes=args.boxes, command="app.py " + " ".join(sys.argv[1:]))
+                       precision=args.precision, box_kind=args.boxes, command="app.py " + " ".join(sys.argv[1:]))
     v = d["training"]["validation_synthetic"]
     from .report import fmt_num
     print(f"detector added to {args.model}: synthetic validation AP {fmt_num(v['ap'])}, AP50 {fmt_num(v['ap50'])}")

@@ -364,6 +364,8 @@ def _recipe_options(old: dict, new: dict) -> str:
             continue
         if k == "cutouts":
             out.append("no --cutouts" if v is None else f"--cutouts (a folder of {v})")
+        elif k == "frozen_batchnorm":
+            out.append("--init-from a bundle (its BatchNorms frozen)" if v else "no --init-from a bundle")
         else:
             out.append(f"--{k.replace('_', '-')} {v}")
     return ", ".join(out)
@@ -373,12 +375,12 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
                    input_h: int = 240, batch: int = 32, lr: float = 2e-3, seed: int = 0, max_images=None,
                    val_parts: int = 20, threads: int = 2, init_from=None, occlusion: float = 0.0,
                    paste_objects: float = 0.0, cutouts=None, cutout_share: float | None = None, log=print,
-                   command: str | None = None, precision: str = "auto", boxes: str = "visible") -> dict:
-    """``boxes``: the targets are the objects' visible boxes, or their whole silhouettes'
+                   command: str | None = None, precision: str = "auto", box_kind: str = "visible") -> dict:
+    """``box_kind``: the targets are the objects' visible boxes, or their whole silhouettes'
     (``amodal``, clipped to the image: a box's size and centre then follow the object's
     distance and position behind whatever hides part of it)."""
-    if boxes not in BOX_KINDS:
-        raise UserError(f"--boxes must be one of {', '.join(BOX_KINDS)}, not '{boxes}'")
+    if box_kind not in BOX_KINDS:
+        raise UserError(f"--boxes must be one of {', '.join(BOX_KINDS)}, not '{box_kind}'")
     if paste_objects > 0 and occlusion <= 0:  # before torch is imported: nothing to wait for
         raise UserError("--paste-objects cuts some of the occlusion rectangles around objects: "
                         "it needs --occlusion above 0 as well")
@@ -396,14 +398,14 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     torch.set_num_threads(threads)
     torch.manual_seed(seed)
     precision = prec.resolve(precision)
-    spec = DetectorSpec(classes=[int(o["id"]) for o in bundle.objects], input_w=input_w, input_h=input_h, boxes=boxes)
+    spec = DetectorSpec(classes=[int(o["id"]) for o in bundle.objects], input_w=input_w, input_h=input_h, boxes=box_kind)
     root = Path(bundle_dir)
     work = work_dir(root)
     work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     # caches and checkpoints are keyed by the data, the classes and the network's shape
     key = hashlib.sha1(json.dumps([str(Path(data_dir).resolve()), spec.classes, input_w, input_h, max_images,
-                                   width] + ([boxes] if boxes != "visible" else [])).encode()).hexdigest()[:10]
+                                   width] + ([box_kind] if box_kind != "visible" else [])).encode()).hexdigest()[:10]
     images, boxes = load_detection_set(data_dir, spec, work / f"det_images_{key}.npz", max_images, log)
     n = len(images)
     tr, va = train_val_split(n, seed, parts=val_parts)
@@ -423,7 +425,7 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     # network are in the key): otherwise one run silently mixes two augmentations or optimisers.
     # Not --minutes: a larger budget trains a finished run on (docs/models.md)
     recipe = {"batch": batch, "lr": lr, "seed": seed, "occlusion": occlusion, "paste_objects": paste_objects,
-              **RECIPE_ADDED, "boxes": spec.boxes, "frozen_batchnorm": frozen}
+              **RECIPE_ADDED, "boxes": box_kind, "frozen_batchnorm": frozen}
     if cutouts:
         recipe.update(cutouts=cutout_set, cutout_share=CUTOUT_SHARE if cutout_share is None else cutout_share)
     if ckpt.is_file():
