@@ -25,6 +25,9 @@ CANDIDATE_PER_CLASS = 10
 CANDIDATE_MAX = 100
 
 
+BOX_KINDS = ("visible", "amodal")  # what a detector's boxes cover (DetectorSpec.boxes)
+
+
 @dataclass
 class DetectorSpec:
     classes: list[int]               # object id of each heatmap channel

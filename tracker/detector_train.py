@@ -23,7 +23,7 @@ from tqdm import tqdm
 
 from .bop import load_scene
 from .crops import split_scene_dirs, train_val_split
-from .detector import DetectorSpec, decode, letterbox, normalise
+from .detector import BOX_KINDS, DetectorSpec, decode, letterbox, normalise
 from .errors import UserError
 from .paths import work_dir
 from .visibility import mask_box
@@ -33,7 +33,6 @@ CUTOUT_MAX_SIDE = 160  # px a cut-out is kept at; pastes reach 40 % of the input
 CUTOUT_SHARE = 0.5     # share of training images that get cut-outs when --cutouts is given
 # recipe keys added after checkpoints were first written, at the value a run without them records
 RECIPE_ADDED = {"cutouts": None, "cutout_share": 0.0, "boxes": "visible", "frozen_batchnorm": False}
-BOX_KINDS = ("visible", "amodal")
 
 
 def target_box(info: dict, kind: str, width: int, height: int) -> list[float]:
@@ -325,9 +324,8 @@ def _init_weights(torch, path, width: int, classes: list[int]) -> tuple[dict, bo
 
 def _weights_from_bundle(torch, path, width: int, classes: list[int]) -> dict:
     import onnx
-    import onnxruntime as ort
     from onnx import numpy_helper
-    from .detector_ensemble import _member
+    from .detector_ensemble import _member, _run
     from .nets.detector import CenterNetLite, state_from_export
     # verified; joined or int8 detectors refused
     _, spec, _, onnx_path = _member(path, "start from the bundle of one of the networks it was made from")
@@ -348,8 +346,7 @@ def _weights_from_bundle(torch, path, width: int, classes: list[int]) -> dict:
     x = np.random.default_rng(0).normal(0, 1, (1, 3, spec.input_h, spec.input_w)).astype(np.float32)
     with torch.no_grad():
         y = model.eval()(torch.from_numpy(x)).numpy()
-    sess = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])
-    diff = float(np.abs(sess.run(None, {sess.get_inputs()[0].name: x})[0] - y).max())
+    diff = float(np.abs(_run(onnx_path, x) - y).max())
     if diff > 1e-4:
         raise UserError(f"--init-from {path}: the weights read back differ from its detector by {diff:.1e}")
     return sd
