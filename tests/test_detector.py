@@ -106,6 +106,32 @@ def test_occlusion_pastes_clutter_and_drops_hidden_boxes():
     assert torch.equal(same, x) and same_boxes[0] is boxes[0]
 
 
+def test_hue_turns_keep_grey_and_cycle_the_channels():
+    from tracker.detector_train import hue_turns
+    R = hue_turns([0.0, 2 * np.pi / 3, 1.0])
+    assert np.allclose(R[0], np.eye(3), atol=1e-6)
+    assert np.allclose(R[1] @ [1, 0, 0], [0, 1, 0], atol=1e-6)   # a third of a turn: red -> green
+    assert np.allclose(R[2] @ [0.5, 0.5, 0.5], [0.5, 0.5, 0.5], atol=1e-6)  # grey stays grey
+    assert not np.allclose(R[2] @ [1, 0, 0], [1, 0, 0], atol=1e-2)
+
+
+def test_strong_colour_changes_colours_not_boxes():
+    torch = pytest.importorskip("torch")
+    from tracker.detector_train import augment_batch
+    x = torch.rand(16, 3, 48, 64)
+    boxes = [np.array([[0, 10, 8, 30, 20]], np.float32) for _ in range(16)]
+    torch.manual_seed(0)
+    std, b_std = augment_batch(x.clone(), boxes, np.random.default_rng(3), torch)
+    torch.manual_seed(0)
+    again, _ = augment_batch(x.clone(), boxes, np.random.default_rng(3), torch, colour="standard")
+    strong, b_strong = augment_batch(x.clone(), boxes, np.random.default_rng(3), torch, colour="strong")
+    for a, b in zip(b_std, b_strong):   # zoom and shift are drawn first: the same boxes
+        assert np.array_equal(a, b)
+    assert float(strong.min()) >= 0 and float(strong.max()) <= 1
+    assert not torch.allclose(std, strong, atol=0.05)
+    assert torch.equal(std, again)      # the default is the standard path, draw for draw
+
+
 def test_pasted_objects_join_the_targets():
     torch = pytest.importorskip("torch")
     from tracker.detector_train import occlude
@@ -321,6 +347,12 @@ def test_a_run_resumes_only_with_its_own_options(tiny_detector_bundle, tiny_bund
     assert any(str(l).startswith("resumed from") for l in logs)
     with pytest.raises(UserError, match=r"with --occlusion 0\.0: rerun with those options"):
         train_detector(tiny_bundle.parent / "split", root, minutes=0.02, width=8, batch=2, occlusion=0.5,
+                       log=lambda *a: None)
+    with pytest.raises(UserError, match=r"with --colour standard: rerun"):
+        train_detector(tiny_bundle.parent / "split", root, minutes=0.02, width=8, batch=2, colour="strong",
+                       log=lambda *a: None)
+    with pytest.raises(UserError, match=r"--colour must be one of"):
+        train_detector(tiny_bundle.parent / "split", root, minutes=0.02, width=8, batch=2, colour="vivid",
                        log=lambda *a: None)
     _write_cutouts(tmp_path / "cut")
     with pytest.raises(UserError, match=r"with no --cutouts: rerun"):

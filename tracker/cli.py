@@ -182,7 +182,8 @@ def cmd_train_detector(args) -> int:
                        input_h=args.input[1], batch=args.batch, seed=args.seed, max_images=args.max_images,
                        lr=args.lr, init_from=args.init_from, occlusion=args.occlusion, paste_objects=args.paste_objects,
                        cutouts=args.cutouts, cutout_share=args.cutout_share,
-                       precision=args.precision, box_kind=args.boxes, command="app.py " + " ".join(sys.argv[1:]))
+                       precision=args.precision, box_kind=args.boxes, colour=args.colour,
+                       command="app.py " + " ".join(sys.argv[1:]))
     v = d["training"]["validation_synthetic"]
     from .report import fmt_num
     print(f"detector added to {args.model}: synthetic validation AP {fmt_num(v['ap'])}, AP50 {fmt_num(v['ap50'])}")
@@ -570,6 +571,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "pasted over training images as real clutter that is not a target (docs/models.md)")
     s.add_argument("--cutout-share", type=fraction, default=None, metavar="P",
                    help="share of training images that get 1-3 cut-outs pasted over them (with --cutouts; default 0.5)")
+    s.add_argument("--colour", choices=("standard", "strong"), default="standard",
+                   help="photometric augmentation: brightness, contrast, saturation, white balance, blur and noise; "
+                        "'strong' adds grey-scale blends, per-channel gains and offsets, hue turns, inverted "
+                        "channels and wider blurs (as detectors trained on renders for BOP do)")
     _add_precision(s)
     s.set_defaults(func=cmd_train_detector)
 

@@ -32,7 +32,9 @@ MIN_VISIB = 0.1
 CUTOUT_MAX_SIDE = 160  # px a cut-out is kept at; pastes reach 40 % of the input width (128 px at 320)
 CUTOUT_SHARE = 0.5     # share of training images that get cut-outs when --cutouts is given
 # recipe keys added after checkpoints were first written, at the value a run without them records
-RECIPE_ADDED = {"cutouts": None, "cutout_share": 0.0, "boxes": "visible", "frozen_batchnorm": False}
+RECIPE_ADDED = {"cutouts": None, "cutout_share": 0.0, "boxes": "visible", "frozen_batchnorm": False,
+                "colour": "standard"}
+COLOUR_AUGS = ("standard", "strong")
 
 
 def target_box(info: dict, kind: str, width: int, height: int) -> list[float]:
@@ -244,13 +246,59 @@ def paste_cutouts(x, boxes_list, rng: np.random.Generator, cutouts: list[np.ndar
     return x, out
 
 
+def hue_turns(angles) -> np.ndarray:
+    """(B, 3, 3) float32: RGB turned about the grey axis by each angle (radians); grey stays
+    grey, a third of a turn takes red to green."""
+    from scipy.spatial.transform import Rotation
+    axis = np.ones(3) / np.sqrt(3)
+    return Rotation.from_rotvec(np.asarray(angles, float)[:, None] * axis).as_matrix().astype(np.float32)
+
+
+def strong_colour(x, rng: np.random.Generator, torch):
+    """The heavier photometric changes that detectors trained on renders for BOP use (GDR-Net's
+    and CosyPose's imgaug pipelines, in spirit): each with its own chance per image, a
+    grey-scale blend, a per-channel gain and offset, a stronger contrast, the hue turned
+    by up to 30 degrees, channels inverted, a wider blur. They leave the geometry alone, so
+    the boxes stand. ``x``: (B, 3, H, W) float in [0, 1]."""
+    from torch.nn import functional as F
+    B = x.shape[0]
+
+    def per_image(p, lo, hi, shape=(1, 1, 1), neutral=1.0):
+        v = rng.uniform(lo, hi, (B,) + shape).astype(np.float32)
+        v[rng.random(B) >= p] = neutral
+        return torch.from_numpy(v)
+
+    grey = x.mean(dim=1, keepdim=True)
+    a = per_image(0.5, 0.0, 1.0, neutral=0.0)
+    x = x * (1 - a) + grey * a                                               # towards grey
+    x = x * per_image(0.5, 0.6, 1.4, (3, 1, 1)) + per_image(0.5, -0.1, 0.1, (3, 1, 1), 0.0)  # per-channel gain, offset
+    m = x.mean(dim=(1, 2, 3), keepdim=True)
+    x = (x - m) * per_image(0.5, 0.5, 2.2) + m                                # contrast
+    ang = rng.uniform(-np.pi / 6, np.pi / 6, B) * (rng.random(B) < 0.3)  # shades, not other objects' colours
+    x = torch.einsum("bij,bjhw->bihw", torch.from_numpy(hue_turns(ang)), x)  # hue turned
+    inv = torch.from_numpy(((rng.random((B, 3)) < 0.2) & (rng.random((B, 1)) < 0.3)).astype(np.float32))[:, :, None, None]
+    x = x.clamp(0, 1)
+    x = x * (1 - inv) + (1 - x) * inv                                         # channels inverted
+    sig = rng.uniform(0.5, 2.0, B)
+    for i in np.nonzero(rng.random(B) < 0.2)[0]:                               # a wider blur
+        r = int(np.ceil(2.5 * sig[i]))
+        k = torch.from_numpy(np.exp(-0.5 * (np.arange(-r, r + 1) / sig[i]) ** 2).astype(np.float32))
+        k = k / k.sum()
+        xi = F.pad(x[i:i + 1], (r, r, r, r), mode="replicate")
+        xi = F.conv2d(xi, k.view(1, 1, 1, -1).repeat(3, 1, 1, 1), groups=3)
+        x[i:i + 1] = F.conv2d(xi, k.view(1, 1, -1, 1).repeat(3, 1, 1, 1), groups=3)
+    return x.clamp(0, 1)
+
+
 def augment_batch(x, boxes_list, rng: np.random.Generator, torch, occlusion: float = 0.0,
-                  paste_objects: float = 0.0, cutouts: list[np.ndarray] | None = None, cutout_share: float = 0.0):
+                  paste_objects: float = 0.0, cutouts: list[np.ndarray] | None = None, cutout_share: float = 0.0,
+                  colour: str = "standard"):
     """Random zoom (0.6-1.6, log-uniform) and shift on the whole batch item (boxes follow),
     then (with ``occlusion`` > 0) clutter pasted over it (``occlude``; ``paste_objects`` is its
     ``objects``), then (with ``cutouts`` and ``cutout_share`` > 0) real cut-outs over a share of
     the items (``paste_cutouts``), then colour
-    (brightness, contrast, saturation, per-channel gain), blur and noise.
+    (brightness, contrast, saturation, per-channel gain), blur and noise; with ``colour``
+    'strong', ``strong_colour`` before the noise.
     ``x``: (B, 3, H, W) float in [0, 1]."""
     from torch.nn import functional as F
     B, _, H, W = x.shape
@@ -295,6 +343,8 @@ def augment_batch(x, boxes_list, rng: np.random.Generator, torch, occlusion: flo
         xb = F.conv2d(F.pad(x[idx], (2, 2, 2, 2), mode="replicate"), k[None, None].repeat(3, 1, 1, 1), groups=3)
         x = x.clone()
         x[idx] = xb
+    if colour == "strong":  # (no draw without: older runs' streams unchanged)
+        x = strong_colour(x.clamp(0, 1), rng, torch)
     x = x + torch.randn_like(x) * torch.from_numpy(rng.uniform(0, 0.04, (B, 1, 1, 1)).astype(np.float32))
     return x.clamp(0, 1), out_boxes
 
@@ -372,12 +422,15 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
                    input_h: int = 240, batch: int = 32, lr: float = 2e-3, seed: int = 0, max_images=None,
                    val_parts: int = 20, threads: int = 2, init_from=None, occlusion: float = 0.0,
                    paste_objects: float = 0.0, cutouts=None, cutout_share: float | None = None, log=print,
-                   command: str | None = None, precision: str = "auto", box_kind: str = "visible") -> dict:
+                   command: str | None = None, precision: str = "auto", box_kind: str = "visible",
+                   colour: str = "standard") -> dict:
     """``box_kind``: the targets are the objects' visible boxes, or their whole silhouettes'
     (``amodal``, clipped to the image: a box's size and centre then follow the object's
     distance and position behind whatever hides part of it)."""
     if box_kind not in BOX_KINDS:
         raise UserError(f"--boxes must be one of {', '.join(BOX_KINDS)}, not '{box_kind}'")
+    if colour not in COLOUR_AUGS:
+        raise UserError(f"--colour must be one of {', '.join(COLOUR_AUGS)}, not '{colour}'")
     if paste_objects > 0 and occlusion <= 0:  # before torch is imported: nothing to wait for
         raise UserError("--paste-objects cuts some of the occlusion rectangles around objects: "
                         "it needs --occlusion above 0 as well")
@@ -422,7 +475,7 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     # network are in the key): otherwise one run silently mixes two augmentations or optimisers.
     # Not --minutes: a larger budget trains a finished run on (docs/models.md)
     recipe = {"batch": batch, "lr": lr, "seed": seed, "occlusion": occlusion, "paste_objects": paste_objects,
-              **RECIPE_ADDED, "boxes": box_kind, "frozen_batchnorm": frozen}
+              **RECIPE_ADDED, "boxes": box_kind, "frozen_batchnorm": frozen, "colour": colour}
     if cutouts:
         recipe.update(cutouts=cutout_set, cutout_share=CUTOUT_SHARE if cutout_share is None else cutout_share)
     if ckpt.is_file():
@@ -471,7 +524,7 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
             idx = b_rng.choice(tr, batch, replace=False)
             x = torch.from_numpy(images[idx]).permute(0, 3, 1, 2).float().div_(255)
             x, bl = augment_batch(x, [boxes[i] for i in idx], b_rng, torch, occlusion, paste_objects,
-                                  cutout_images, recipe["cutout_share"])
+                                  cutout_images, recipe["cutout_share"], colour)
             hm_t, reg_t, mask_t = (torch.from_numpy(a) for a in draw_targets(bl, C, ow, oh, S))
             with prec.autocast(precision):
                 hm, reg = model.forward_logits(prec.channels_last((x - spec.mean) / spec.std))
