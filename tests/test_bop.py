@@ -111,6 +111,26 @@ def test_models_info_round_trip(tmp_path):
     assert bop.load_models_info(tmp_path / "models_info.json") == info
 
 
+@pytest.mark.parametrize("entry, match", [
+    ({"diameter": -102.1}, "positive number"),       # a negative diameter would inflate every recall
+    ({"diameter": 0}, "positive number"),
+    ({"diameter": "102"}, "positive number"),
+    ({"diameter": 102.1, "symmetries_discrete": [[1, 2, 3]]}, "4x4 transforms"),
+    ({"diameter": 102.1, "symmetries_discrete": [[2.0] + [0.0] * 15]}, "not a rotation"),
+    ({"diameter": 102.1, "symmetries_continuous": [{"axis": [0, 0, 0]}]}, "symmetries_continuous"),
+    ([1, 2], "expected an object of objects"),
+])
+def test_bad_models_info_is_refused(tmp_path, entry, match):
+    p = tmp_path / "models_info.json"
+    p.write_text(json.dumps(entry if isinstance(entry, list) else {"1": entry}))
+    with pytest.raises(UserError, match=match):
+        bop.load_models_info(p)
+    good = {"diameter": 164.6, "symmetries_discrete": [np.eye(4).ravel().tolist()],
+            "symmetries_continuous": [{"axis": [0, 0, 1], "offset": [0, 0, 0]}]}
+    p.write_text(json.dumps({"10": good}))
+    assert bop.load_models_info(p)[10] == good
+
+
 def test_gt_poses_project_onto_the_image(lmo_dev, lmo_models):
     """Every annotated object whose centre is in view projects to a plausible box."""
     n_in = 0

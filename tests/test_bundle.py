@@ -41,11 +41,21 @@ def test_a_hashed_file_of_the_wrong_kind_is_refused(bundle):
     (lambda m: m.pop("objects"), "objects"),
     (lambda m: m["objects"][0].pop("diameter"), "diameter"),
     (lambda m: m.update(input_size="abc"), "input_size"),
+    (lambda m: m["objects"][0].update(diameter=-102.1), "diameter"),
+    (lambda m: m.update(detector="x"), "detector"),
+    (lambda m: m["detector"].pop("classes"), "classes"),
+    (lambda m: m.update(heads="nope"), "heads"),
 ])
 def test_a_malformed_manifest_is_refused(bundle, change, what):
     _rehash(bundle, change)
     with pytest.raises(UserError, match=f"malformed manifest.*{what}"):
         open_bundle(bundle)
+
+
+def test_a_manifest_that_misstates_the_latent_size_is_refused(bundle):
+    _rehash(bundle, lambda m: m.update(latent_size=64))
+    with pytest.raises(UserError, match="encoder gives 128 latent values, the manifest says 64"):
+        PoseEstimator(bundle)
 
 
 def test_decimate_rewrites_the_overlay_meshes_of_a_bundle_that_has_them(bundle):

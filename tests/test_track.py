@@ -131,3 +131,64 @@ def test_looping_replay_numbers_frames_and_reports_memory(tiny_bundle, data_dir,
     assert [int(r.split(",")[0]) for r in rows] == [0, 1, 2, 3, 4]
     with pytest.raises(UserError, match="camera cannot be looped"):
         run_track(TrackConfig("0", str(tiny_bundle), tmp_path / "cam", loop=True), log=lambda m: None)
+
+
+def _two_frames_and_a_corrupt_one(data_dir, folder):
+    import shutil
+    folder.mkdir()
+    for i in (3, 8):
+        shutil.copy(data_dir / "lmo" / "dev" / "rgb" / f"{i:06d}.png", folder)
+    (folder / "000009.png").write_bytes(b"not a png at all")
+    return str(Path(__file__).resolve().parents[1] / "calib" / "lmo_kinect.yml")
+
+
+def test_a_run_that_fails_midway_keeps_its_summary(tiny_bundle, data_dir, tmp_path):
+    calib = _two_frames_and_a_corrupt_one(data_dir, tmp_path / "imgs")
+    out = tmp_path / "run"
+    with pytest.raises(UserError, match="unreadable image"):
+        run_track(TrackConfig(str(tmp_path / "imgs"), str(tiny_bundle), out, calib=calib, rerun="off"),
+                  log=lambda m: None)
+    s = json.loads((out / "summary.json").read_text())
+    assert s["frames"] == 2 and "unreadable image" in s["error"] and not s["interrupted"]
+    assert len((out / "timings.csv").read_text().splitlines()) == 3
+    assert {e.im_id for e in read_results(out / "poses.csv")} <= {0, 1}
+
+
+def test_an_interrupted_run_writes_its_summary_without_scoring(tiny_bundle, data_dir, tmp_path, monkeypatch):
+    import os
+    import signal
+    from tracker import sinks
+    write = sinks.CsvSink.write
+
+    def write_then_interrupt(self, *a, **kw):  # Ctrl-C while the second frame is being logged
+        write(self, *a, **kw)
+        if a[1] == 8:
+            os.kill(os.getpid(), signal.SIGINT)
+    monkeypatch.setattr(sinks.CsvSink, "write", write_then_interrupt)
+    out = tmp_path / "run"
+    s = run_track(TrackConfig(str(data_dir / "lmo" / "dev"), str(tiny_bundle), out, rerun="off", max_frames=4),
+                  log=lambda m: None)
+    assert s["interrupted"] and s["frames"] == 2 and "accuracy" not in s and s["error"] is None
+    assert json.loads((out / "summary.json").read_text())["frames"] == 2
+
+
+def test_finishing_a_run_defers_the_first_interrupt():
+    import os
+    import signal
+    from tracker.loop import _Deferred
+    said = []
+    with pytest.raises(KeyboardInterrupt):
+        with _Deferred(said.append, "scoring") as d:
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.05)
+            assert d.hit and said == ["scoring; interrupt again to skip it"]
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.05)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # put back
+
+
+def test_unknown_object_ids_are_refused(tiny_bundle, data_dir, tmp_path):
+    with pytest.raises(UserError, match="--obj-ids 99: not objects of"):
+        run_track(TrackConfig(str(data_dir / "lmo" / "dev"), str(tiny_bundle), tmp_path / "run", obj_ids=[1, 99]),
+                  log=lambda m: None)
+    assert not (tmp_path / "run").exists()

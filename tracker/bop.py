@@ -253,13 +253,45 @@ def load_scene(root, require_gt: bool = False) -> Scene:
 # --------------------------------------------------------------------------- models_info
 
 
+def _is_vector(v, nonzero: bool = False) -> bool:
+    """Three finite numbers (not all zero, with ``nonzero``)."""
+    try:
+        a = np.asarray(v, dtype=np.float64)
+    except (TypeError, ValueError):
+        return False
+    return a.shape == (3,) and bool(np.all(np.isfinite(a))) and (not nonzero or bool(np.any(a != 0)))
+
+
 def load_models_info(path) -> dict[int, dict]:
     path = Path(path)
     raw = _load_json(path)
+    if not isinstance(raw, dict):
+        raise UserError(f"{path}: expected an object of objects keyed by id (BOP models_info), not a {type(raw).__name__}")
     out = {}
     for k, v in raw.items():
+        where = f"{path}: object {k}"
+        if not str(k).isdigit() or not isinstance(v, dict):
+            raise UserError(f"{where}: expected an object id (digits) mapped to its entry")
         if "diameter" not in v:
-            raise UserError(f"{path}: object {k} has no 'diameter'")
+            raise UserError(f"{where} has no 'diameter'")
+        d = v["diameter"]
+        if isinstance(d, bool) or not isinstance(d, (int, float)) or not np.isfinite(d) or d <= 0:
+            raise UserError(f"{where}: 'diameter' must be a positive number of mm, not {d!r}")
+        syms = v.get("symmetries_discrete", [])
+        if not isinstance(syms, list) or any(np.asarray(t, dtype=object).size != 16 for t in syms):
+            raise UserError(f"{where}: 'symmetries_discrete' must be a list of 4x4 transforms, each 16 numbers")
+        try:
+            T = np.asarray(syms, dtype=np.float64).reshape(-1, 4, 4)
+        except (TypeError, ValueError):
+            raise UserError(f"{where}: 'symmetries_discrete' holds something that is not a number") from None
+        if len(T) and not (np.all(np.isfinite(T)) and np.allclose(T[:, :3, :3] @ T[:, :3, :3].transpose(0, 2, 1),
+                                                                   np.eye(3), atol=1e-3)):
+            raise UserError(f"{where}: a 'symmetries_discrete' transform is not a rotation")
+        conts = v.get("symmetries_continuous", [])
+        if not isinstance(conts, list) or not all(
+                isinstance(c, dict) and _is_vector(c.get("axis"), nonzero=True) and _is_vector(c.get("offset", [0, 0, 0]))
+                for c in conts):
+            raise UserError(f"{where}: 'symmetries_continuous' must be a list of {{'axis': [x, y, z], 'offset': ...}}")
         out[int(k)] = v
     return out
 

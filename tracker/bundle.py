@@ -153,6 +153,13 @@ def check_manifest(manifest: dict, where) -> None:
         for key, kind in (("id", int), ("mesh", str), ("diameter", (int, float))):
             if not isinstance(o.get(key), kind) or isinstance(o.get(key), bool):
                 bad(f"object {o.get('id', '?')}: '{key}' missing or not a {getattr(kind, '__name__', 'number')}")
+        if not o["diameter"] > 0:
+            bad(f"object {o['id']}: 'diameter' must be positive (mm), not {o['diameter']}")
+    for key in ("detector", "heads"):
+        if key in manifest and not isinstance(manifest[key], dict):
+            bad(f"'{key}' is not a mapping")
+    if isinstance(manifest.get("detector"), dict) and not isinstance(manifest["detector"].get("classes"), list):
+        bad("the detector's 'classes' list is missing")
     for key in ("input_size", "latent_size"):
         v = manifest.get(key)
         if not isinstance(v, int) or isinstance(v, bool) or v <= 0:

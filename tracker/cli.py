@@ -119,8 +119,9 @@ def cmd_score(args) -> int:
     from .scoring import score_results, write_metrics_json
     m = score_results(args.results, args.data, args.models, models_info=args.models_info)
     write_metrics_json(args.json, m)
-    print(f"{m['n_gt']} ground-truth instances, {m['n_est']} estimates: ADD(I) {m['add_recall']:.3f}, "
-          f"AR_MSSD {m['ar_mssd']:.3f}, AR_MSPD {m['ar_mspd']:.3f}, AR {m['ar']:.3f} "
+    from .report import fmt_num  # (no instances: the recalls are null)
+    print(f"{m['n_gt']} ground-truth instances, {m['n_est']} estimates: ADD(I) {fmt_num(m['add_recall'])}, "
+          f"AR_MSSD {fmt_num(m['ar_mssd'])}, AR_MSPD {fmt_num(m['ar_mspd'])}, AR {fmt_num(m['ar'])} "
           f"(visibility: {m['visibility_source']})")
     print(f"wrote {args.json}")
     return 0
@@ -323,14 +324,16 @@ def cmd_bench(args) -> int:
                          for k, v in per.items()},
            "source": str(args.source), "model": str(args.model), "rerun": args.rerun, "overlay": not args.no_overlay,
            "boxes": s["boxes"], "detect_every": args.detect_every, "obj_ids": args.obj_ids,
-           "accuracy": s.get("accuracy")}
+           "accuracy": s.get("accuracy"), "interrupted": s["interrupted"]}
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(json.dumps(res, indent=1))
     print(f"{res['frames']} frames, {res['objects_per_frame']} objects/frame: {res['fps']} fps (median), "
           f"{res['ms_per_object']} ms per object (crop + encoder + regressors)")
     print("median / p95 ms: " + ", ".join(f"{k} {v['median']:.1f}/{v['p95']:.1f}" for k, v in res["stages_ms"].items()))
-    print(f"wrote {args.json}")
-    return 0
+    if s.get("video_truncated"):
+        print("warning: the video ended before its declared length (truncated file?)", file=sys.stderr)
+    print(("INTERRUPTED after " if s["interrupted"] else "") + f"{res['frames']} frames: wrote {args.json}")
+    return 130 if s["interrupted"] else 0
 
 
 # --------------------------------------------------------------------------- argument types

@@ -90,6 +90,10 @@ class PoseEstimator:
         shape = self.session.get_inputs()[0].shape
         if shape[1:] != [3, self.size, self.size]:
             raise UserError(f"encoder input is {shape[1:]}, the manifest says 3x{self.size}x{self.size}")
+        n = self.session.get_outputs()[0].shape[-1]
+        if isinstance(n, int) and n != int(m["latent_size"]):
+            raise UserError(f"{self.bundle.root}: the encoder gives {n} latent values, the manifest says "
+                            f"{m['latent_size']}; rebuild the bundle")
 
     def crops(self, image_rgb: np.ndarray, boxes) -> np.ndarray:
         """(N, 3, S, S) float32 in [0, 1], RGB, as the encoder takes them."""

@@ -66,6 +66,29 @@ class _Stopper:
             signal.signal(s, h)
 
 
+class _Deferred:
+    """SIGINT / SIGTERM while the run's files are being finished: the first is noted (and
+    said) and the work goes on; a second one stops it (KeyboardInterrupt)."""
+
+    def __init__(self, log, what: str):
+        self.log, self.what, self.hit, self._old = log, what, False, {}
+
+    def __enter__(self):
+        for s in (signal.SIGINT, signal.SIGTERM):
+            self._old[s] = signal.signal(s, self._handle)
+        return self
+
+    def _handle(self, *_):
+        if self.hit:
+            raise KeyboardInterrupt
+        self.hit = True
+        self.log(f"{self.what}; interrupt again to skip it")
+
+    def __exit__(self, *exc):
+        for s, h in self._old.items():
+            signal.signal(s, h)
+
+
 def _gt_detections(frame, boxes_of, known) -> list[Detection]:
     """Ground-truth visible boxes of the bundle's objects that are at least 10 % visible."""
     from .evaluate import gt_instances_with_boxes
@@ -122,11 +145,14 @@ def run_track(cfg: TrackConfig, log=print) -> dict:
     from .sources import BopSceneSource, is_camera, open_source
     est = PoseEstimator(cfg.model)
     names = {o["id"]: o["name"] for o in est.bundle.objects}
+    unknown = [o for o in cfg.obj_ids or [] if o not in est.obj_ids]
+    if unknown:
+        raise UserError(f"--obj-ids {','.join(map(str, unknown))}: not objects of {cfg.model} "
+                        f"(it knows {','.join(map(str, est.obj_ids))})")
     if cfg.loop and is_camera(cfg.source):
         raise UserError("--loop replays recordings; a camera cannot be looped")
     src = open_source(cfg.source, max_frames=None if cfg.loop else cfg.max_frames, realtime=cfg.realtime)
     out = Path(cfg.out)
-    out.mkdir(parents=True, exist_ok=True)
     boxes_of = None
     if cfg.boxes in ("auto", "gt") and isinstance(src, BopSceneSource) and src.scene.gt:
         from .evaluate import gt_boxes, gt_object_ids
@@ -155,6 +181,7 @@ def run_track(cfg: TrackConfig, log=print) -> dict:
     diam = {o["id"]: o["diameter"] for o in est.bundle.objects}
     cam = read_camera(cfg.calib) if cfg.calib else None
     undist = Undistorter(cam) if cam else None
+    out.mkdir(parents=True, exist_ok=True)  # only now: a run that cannot start leaves no empty folder
     csv_sink = CsvSink(out)
     renderer = rr_sink = None
     n = 0
@@ -166,6 +193,8 @@ def run_track(cfg: TrackConfig, log=print) -> dict:
     last = time.perf_counter()
     fps = None
     rss_early = None
+    interrupted = False
+    failure = None
     try:
         with _Stopper() as stopper:
             it = iter(src)
@@ -256,13 +285,18 @@ def run_track(cfg: TrackConfig, log=print) -> dict:
                         f"outside what it was trained on); expect larger errors there")
                 out_of_prior += bad
             interrupted = stopper.stop
+    except KeyboardInterrupt:  # (a signal that came before the loop's handler was in place)
+        interrupted = True
+    except Exception as e:  # a fatal error mid-run: the frames done so far keep their summary
+        failure = e
     finally:
-        csv_sink.close()
-        src.close()
-        if rr_sink is not None:
-            rr_sink.close()
-        if renderer is not None:
-            renderer.close()
+        with _Deferred(log, "closing the run's files"):
+            csv_sink.close()
+            src.close()
+            if rr_sink is not None:
+                rr_sink.close()
+            if renderer is not None:
+                renderer.close()
     wall = time.perf_counter() - t_run
     summary = {
         "frames": n, "poses": n_poses, "wall_s": round(wall, 2), "fps": round(n / wall, 2) if wall > 0 else None,
@@ -275,17 +309,26 @@ def run_track(cfg: TrackConfig, log=print) -> dict:
         "detect_every": cfg.detect_every, "smoothing_alpha": cfg.smooth, "looped": cfg.loop,
         "rss_mb": dict(_rss_mb(), after_10_frames=rss_early),
         "recording": str(rr_sink.path) if rr_sink is not None and rr_sink.path else None,
+        "error": None if failure is None else (str(failure) if isinstance(failure, UserError)
+                                               else f"{type(failure).__name__}: {failure}"),
     }
+    # written at once (an interrupted or failed run keeps it), again with the accuracy below
+    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    if failure is not None:
+        raise failure
     has_gt = isinstance(src, BopSceneSource) and bool(src.scene.gt) and not cfg.loop
     gt_objs = {g.obj_id for i in src.ids[:n] for g in src.scene.gt.get(i, [])} if has_gt else set()
-    if has_gt and n and gt_objs <= set(est.obj_ids) and not cfg.obj_ids:  # (a subset would count the rest as missed)
+    # (a subset of the objects would count the rest as missed; an interrupted run is not scored)
+    if has_gt and n and gt_objs <= set(est.obj_ids) and not cfg.obj_ids and not interrupted:
         from .scoring import score_results
-        m = score_results(out / "poses.csv", src.scene.root, est.bundle.root / "meshes",
-                          models_info=est.bundle.root / "meshes" / "models_info.json",
-                          im_ids=src.ids[:n], scene_id=_scene_id(cfg.source))
+        with _Deferred(log, "scoring the poses against the ground truth") as deferred:
+            m = score_results(out / "poses.csv", src.scene.root, est.bundle.root / "meshes",
+                              models_info=est.bundle.root / "meshes" / "models_info.json",
+                              im_ids=src.ids[:n], scene_id=_scene_id(cfg.source))
         summary["accuracy"] = {k: m[k] for k in ("n_gt", "add_recall", "ar_mssd", "ar_mspd", "re_median_deg",
                                                  "te_median_mm", "visibility_source")}
-    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+        summary["interrupted"] = deferred.hit
+        (out / "summary.json").write_text(json.dumps(summary, indent=1))
     return summary
 
 

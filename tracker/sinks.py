@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 
 from .bop import RESULT_HEADER, Estimate, format_result_row
+from .errors import UserError
 
 STAGES = ("capture", "undistort", "detect", "encode", "regress", "render", "log", "total")
 
@@ -38,6 +39,10 @@ class CsvSink:
         self._tf.close()
 
 
+def _first_line(e: Exception) -> str:
+    return (str(e).strip().splitlines() or [type(e).__name__])[0][:160]
+
+
 class RerunSink:
     """rerun logging. ``mode``: spawn (a local viewer), serve (web viewer, URL printed),
     save (OUT/recording.rrd) or off."""
@@ -55,10 +60,20 @@ class RerunSink:
             self.path = Path(out_dir) / "recording.rrd"
             rr.save(self.path)
         elif mode == "spawn":
-            rr.spawn()
+            # the viewer installed beside this Python (.venv/bin/rerun), which need not be on PATH
+            viewer = Path(sys.executable).parent / "rerun"
+            try:
+                rr.spawn(executable_path=str(viewer) if viewer.is_file() else None)
+            except Exception as e:
+                raise UserError(f"--rerun spawn: cannot start the rerun viewer ({_first_line(e)}); without a "
+                                f"display use --rerun serve (web viewer) or --rerun save") from None
         elif mode == "serve":
-            uri = rr.serve_grpc()
-            rr.serve_web_viewer(connect_to=uri, open_browser=False)
+            try:
+                uri = rr.serve_grpc()
+                rr.serve_web_viewer(connect_to=uri, open_browser=False)
+            except Exception as e:
+                raise UserError(f"--rerun serve: cannot start rerun's servers ({_first_line(e)}); is another run "
+                                f"serving on ports 9876 / 9090? Stop it, or use --rerun save") from None
             print(f"rerun web viewer: http://localhost:9090/?url={uri}", file=sys.stderr)
         rr.log("world", rr.ViewCoordinates.RDF, static=True)  # OpenCV camera: x right, y down, z forward
         for oid, mesh in meshes.items():
