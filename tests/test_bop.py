@@ -49,6 +49,44 @@ def test_broken_scene_folders(tmp_path, data_dir, remove):
         bop.load_scene(dst)
 
 
+def _mutate(path, change):
+    d = json.loads(path.read_text())
+    path.write_text(json.dumps(change(d)))
+
+
+@pytest.mark.parametrize("file, change, match", [
+    ("scene_camera.json", lambda d: {**d, "3": {**d["3"], "cam_K": [-572.4] + d["3"]["cam_K"][1:]}}, "not a camera matrix"),
+    ("scene_camera.json", lambda d: {**d, "3": {**d["3"], "cam_K": [0] * 9}}, "not a camera matrix"),
+    ("scene_camera.json", lambda d: {**d, "abc": d["3"]}, "'abc' is not an image id"),
+    ("scene_camera.json", lambda d: list(d.values()), "expected an object keyed by image id"),
+    ("scene_gt.json", lambda d: {**d, "3": [{**d["3"][0], "cam_R_m2c": [0] * 9}] + d["3"][1:]}, "not a rotation"),
+    ("scene_gt.json", lambda d: {**d, "3": [{**d["3"][0], "cam_t_m2c": [0, float("nan"), 900]}] + d["3"][1:]},
+     "not finite"),
+    ("scene_gt.json", lambda d: {**d, "3": 5}, "expected a list"),
+    ("scene_gt_info.json", lambda d: {"3": 5}, "expected a list"),
+])
+def test_malformed_scene_files_are_refused(tmp_path, data_dir, file, change, match):
+    dst = tmp_path / "scene"
+    shutil.copytree(data_dir / "lmo" / "dev", dst)
+    if file == "scene_gt_info.json":
+        (dst / file).write_text("{}")
+    _mutate(dst / file, change)
+    with pytest.raises(UserError, match=match):
+        bop.load_scene(dst)
+
+
+def test_an_image_smaller_than_its_camera_is_refused(tmp_path, data_dir):
+    import cv2
+    dst = tmp_path / "scene"
+    shutil.copytree(data_dir / "lmo" / "dev", dst)
+    p = dst / "rgb" / "000003.png"
+    cv2.imwrite(str(p), cv2.resize(cv2.imread(str(p)), (320, 240)))
+    scene = bop.load_scene(dst)
+    assert scene.read_rgb(8).shape == (480, 640, 3)
+    with pytest.raises(UserError, match="image 3 is 320x240 but its cam_K puts the principal point at"):
+        scene.read_rgb(3)
+
+
 def test_scene_without_gt_when_gt_is_required(tmp_path, data_dir):
     dst = tmp_path / "scene"
     shutil.copytree(data_dir / "lmo" / "dev", dst)

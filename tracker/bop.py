@@ -61,16 +61,32 @@ class GtInstance:
     info: dict = field(default_factory=dict)  # scene_gt_info entry when present
 
 
+def _by_image(path: Path, raw, kind=dict) -> dict:
+    """A BOP per-image JSON: an object keyed by image ids (digits), each entry a ``kind``."""
+    if not isinstance(raw, dict):
+        raise UserError(f"{path}: expected an object keyed by image id, not a {type(raw).__name__}")
+    for k, v in raw.items():
+        if not str(k).isdigit():
+            raise UserError(f"{path}: '{k}' is not an image id (digits)")
+        if not isinstance(v, kind):
+            raise UserError(f"{path}: image {k}: expected a{'n object' if kind is dict else ' list'}, "
+                            f"not a {type(v).__name__}")
+    return raw
+
+
 def load_scene_camera(path) -> dict[int, dict]:
     """{im_id: {"K": 3x3, "depth_scale": float, ...}} from scene_camera.json."""
     path = Path(path)
-    raw = _load_json(path)
+    raw = _by_image(path, _load_json(path))
     out = {}
     for k, v in raw.items():
         try:
             K = np.asarray(v["cam_K"], dtype=np.float64).reshape(3, 3)
         except (KeyError, ValueError, TypeError):
             raise UserError(f"{path}: image {k} has no valid 'cam_K' (9 numbers)") from None
+        if not (np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0 and np.allclose(K[2], [0, 0, 1])):
+            raise UserError(f"{path}: image {k}'s cam_K is not a camera matrix (fx, fy > 0, last row 0 0 1): "
+                            f"{K.ravel().tolist()}")
         entry = dict(v)
         entry["K"] = K
         out[int(k)] = entry
@@ -92,8 +108,13 @@ def save_scene_camera(path, cameras: dict[int, dict]) -> Path:
 
 def load_scene_gt(path, info_path=None) -> dict[int, list[GtInstance]]:
     path = Path(path)
-    raw = _load_json(path)
-    info = _load_json(Path(info_path)) if info_path is not None and Path(info_path).is_file() else {}
+    from .geometry import is_rotation
+    raw = _by_image(path, _load_json(path), list)
+    info = {}
+    if info_path is not None and Path(info_path).is_file():
+        info = _by_image(Path(info_path), _load_json(Path(info_path)), list)
+        if not all(isinstance(e, dict) for v in info.values() for e in v):
+            raise UserError(f"{info_path}: each image must list one object per instance (bbox_visib, visib_fract, ...)")
     out = {}
     for k, insts in raw.items():
         lst = []
@@ -105,6 +126,9 @@ def load_scene_gt(path, info_path=None) -> dict[int, list[GtInstance]]:
                 oid = int(g["obj_id"])
             except (KeyError, ValueError, TypeError):
                 raise UserError(f"{path}: image {k} instance {j} lacks a valid cam_R_m2c / cam_t_m2c / obj_id") from None
+            if not is_rotation(R, tol=0.05) or not np.all(np.isfinite(t)):  # (LM-O: within 0.003)
+                raise UserError(f"{path}: image {k} instance {j}: cam_R_m2c is not a rotation or cam_t_m2c "
+                                f"is not finite")
             lst.append(GtInstance(oid, R, t, dict(infos[j]) if j < len(infos) else {}))
         out[int(k)] = lst
     return out
@@ -176,6 +200,11 @@ class Scene:
             bgr = cv2.imread(str(p), cv2.IMREAD_COLOR)
             if bgr is None:
                 raise UserError(f"unreadable image: {p}")
+        K = self.cameras[im_id]["K"]
+        h, w = bgr.shape[:2]
+        if not (0 < K[0, 2] < w and 0 < K[1, 2] < h):  # a camera for another resolution
+            raise UserError(f"{self.root}: image {im_id} is {w}x{h} but its cam_K puts the principal point at "
+                            f"({K[0, 2]:.1f}, {K[1, 2]:.1f}): the images were resized or the camera is another's")
         return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
     def close(self):
