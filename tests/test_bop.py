@@ -124,6 +124,7 @@ def test_results_csv_round_trip(tmp_path):
     (lambda lines: lines[:1] + [lines[1].replace(lines[1].split(",")[4], " ".join(["1"] * 9))] + lines[2:], ":2: R is not a rotation"),
     (lambda lines: lines[:2] + [lines[2].replace(",0.020000", ",0.030000")], ":3: time"),
     (lambda lines: lines[:1] + [lines[1].replace("2,3,1,", "2,3,77,", 1)] + lines[2:], ":2: unknown obj_id 77"),
+    (lambda lines: lines[:2] + [lines[2].replace(",0.900000,", ",nan,")], ":3: score is not finite"),
 ])
 def test_bad_results_csv_names_the_line(tmp_path, mutate, match):
     p = bop.write_results(tmp_path / "r.csv", [_est(3, 1), _est(3, 5)])
@@ -131,6 +132,18 @@ def test_bad_results_csv_names_the_line(tmp_path, mutate, match):
     p.write_text("\n".join(mutate(lines)) + "\n")
     with pytest.raises(UserError, match=match):
         bop.read_results(p, known_obj_ids={1, 5})
+
+
+def test_a_binary_results_file_is_refused(tmp_path):
+    (tmp_path / "r.csv").write_bytes(bytes(range(256)) * 4)
+    with pytest.raises(UserError, match="not a text file"):
+        bop.read_results(tmp_path / "r.csv")
+
+
+def test_a_json_output_that_is_a_folder_is_refused_before_writing(tmp_path):
+    with pytest.raises(UserError, match="is a folder; name a file"):
+        bop.save_models_info(tmp_path, {1: {"diameter": 1.0}})
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_symmetry_transforms_discretise_continuous_ones():

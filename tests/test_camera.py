@@ -53,6 +53,7 @@ def test_read_ros_camera_info(tmp_path):
     "%YAML:1.0\n---\ncamera_matrix: [1, 2",                 # truncated OpenCV file
     "image_width: 640\nimage_height: 480\n",                  # no camera_matrix
     "image_width: 640\nimage_height: 480\ncamera_matrix: {rows: 3, cols: 3, data: [1, 2, 3]}\n",
+    "image_width: 640\nimage_height: 480\ncamera_matrix: {rows: x, cols: 3, data: [600, 0, 320, 0, 600, 240, 0, 0, 1]}\n",
     "camera_matrix: [0, 0, 320, 0, 600, 240, 0, 0, 1]\nimage_width: 640\nimage_height: 480\n",  # fx = 0
     "just text, not yaml: [",
     "\x00\x01\x02 binary",
@@ -97,6 +98,9 @@ def test_undistortion_moves_points_to_their_pinhole_projection():
 
 def test_parse_board():
     assert parse_board("9x6") == (9, 6)
+    for bad in ("2x2", "3x2", "99999999999x6"):  # OpenCV's finder wants > 2 each way; no giant grids
+        with pytest.raises(UserError, match="3 to 100 inner corners"):
+            parse_board(bad)
     with pytest.raises(UserError):
         parse_board("nine by six")
 

@@ -108,7 +108,8 @@ def test_numeric_flags_are_checked_before_any_work(tmp_path, data_dir):
                  ["train-detector", "--data", tmp_path, "--model", "models/lmo", "--minutes", -5],
                  ["pack-scene", "--data", dev, "--out", tmp_path / "r", "--quality", 200],
                  ["calibrate", "--images", "x", "--board", "9x6", "--square", "nan", "--out", tmp_path / "c.yaml"],
-                 ["synth", "--models", tmp_path, "--out", tmp_path / "s", "--images", 2, "--obj-ids", "1,abc"]):
+                 ["synth", "--models", tmp_path, "--out", tmp_path / "s", "--images", 2, "--obj-ids", "1,abc"],
+                 ["synth", "--models", tmp_path, "--out", tmp_path / "s", "--images", 2, "--seed", -5]):
         p = run(*args)
         assert p.returncode == 2 and "Traceback" not in p.stderr, (args, p.stderr)
         assert "error: argument" in p.stderr, p.stderr
@@ -119,6 +120,20 @@ def test_an_unwritable_output_is_a_one_line_error(tmp_path, data_dir):
     p = run("pack-scene", "--data", data_dir / "lmo" / "dev", "--out", tmp_path / "taken" / "rec")
     assert_one_line_error(p)
     assert "Not a directory" in p.stderr and "taken" in p.stderr
+
+
+def test_outputs_that_cannot_be_written_are_refused_before_the_work(tmp_path, data_dir):
+    dev = data_dir / "lmo" / "dev"
+    (tmp_path / "folder").mkdir()
+    for args, said in (
+            (["eval", "--model", "models/lmo", "--data", dev, "--json", tmp_path / "folder"], "is a folder"),
+            (["synth", "--models", dev.parent / "models", "--out", tmp_path / "s", "--images", 2,
+              "--preview", tmp_path / "folder"], "name a .png or .jpg"),
+            (["pack-scene", "--data", dev, "--out", dev], "is the scene itself")):
+        p = run(*args, timeout=60)
+        assert_one_line_error(p)
+        assert said in p.stderr, p.stderr
+    assert not (tmp_path / "s").exists() and not (dev / "rgb.avi").exists()
 
 
 def test_empty_ground_truth_and_missing_ablate_tables_are_clear_errors(tmp_path, data_dir):

@@ -122,6 +122,12 @@ def test_noiseless_log_gives_zero_error(noiseless):
     assert rotation_error_deg(imu._as_matrix(rep["world_to_cam_quat_wxyz"]), WORLD.as_matrix()) < 0.1
 
 
+def test_an_offset_search_wider_than_ten_minutes_is_refused(noiseless):
+    _, run, rlog, _ = noiseless
+    with pytest.raises(UserError, match=r"--max-offset must lie in \(0, 600\] s"):
+        imu.estimate_time_offset(run, rlog, max_offset_s=1e9)
+
+
 def test_sign_flipped_quaternions_give_the_same_result(noiseless, tmp_path):
     root, run, log, rep = noiseless
     rng = np.random.default_rng(0)

@@ -7,6 +7,7 @@ Everything that reads user files raises :class:`UserError` with the file (and li
 from __future__ import annotations
 
 import csv
+import io
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,8 +34,16 @@ def _load_json(path: Path):
         raise UserError(f"{path}: not valid JSON ({e})") from None
 
 
-def _dump_json(path: Path, obj) -> Path:
+def check_output_file(path, what: str = "output") -> Path:
+    """A file about to be written: refused at once if it is a folder (before any long work)."""
     path = Path(path)
+    if path.is_dir():
+        raise UserError(f"{what} {path} is a folder; name a file")
+    return path
+
+
+def _dump_json(path: Path, obj) -> Path:
+    path = check_output_file(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(path.suffix + ".tmp")
     tmp.write_text(json.dumps(obj, indent=1, default=_json_default))
@@ -108,7 +117,6 @@ def save_scene_camera(path, cameras: dict[int, dict]) -> Path:
 
 def load_scene_gt(path, info_path=None) -> dict[int, list[GtInstance]]:
     path = Path(path)
-    from .geometry import is_rotation
     raw = _by_image(path, _load_json(path), list)
     info = {}
     if info_path is not None and Path(info_path).is_file():
@@ -426,7 +434,11 @@ def read_results(path, known_obj_ids=None) -> list[Estimate]:
         raise UserError(f"results file not found: {path}")
     out = []
     times: dict[tuple[int, int], tuple[float, int]] = {}
-    with open(path, newline="") as f:
+    try:
+        raw = path.read_text()
+    except UnicodeDecodeError:
+        raise UserError(f"{path}: not a text file (a BOP results CSV is expected)") from None
+    with io.StringIO(raw, newline="") as f:
         col, rows = csv_rows(f, path, RESULT_HEADER)
         for line, row in rows:
             try:
@@ -444,6 +456,8 @@ def read_results(path, known_obj_ids=None) -> list[Estimate]:
                 raise UserError(f"{path}:{line}: R is not a rotation matrix (orthonormal, det +1)")
             if not np.all(np.isfinite(t)):
                 raise UserError(f"{path}:{line}: t is not finite")
+            if not np.isfinite(score):
+                raise UserError(f"{path}:{line}: score is not finite")
             if known_obj_ids is not None and obj_id not in known_obj_ids:
                 raise UserError(f"{path}:{line}: unknown obj_id {obj_id} (models: {sorted(known_obj_ids)})")
             key = (scene_id, im_id)

@@ -28,8 +28,8 @@ def parse_board(text: str) -> tuple[int, int]:
         cols, rows = (int(v) for v in text.lower().split("x"))
     except ValueError:
         raise UserError(f"--board must look like COLSxROWS of inner corners, e.g. 9x6; got '{text}'") from None
-    if cols < 2 or rows < 2:
-        raise UserError(f"--board needs at least 2x2 inner corners, got {text}")
+    if not (3 <= cols <= 100 and 3 <= rows <= 100):  # OpenCV's finder needs more than 2 each way
+        raise UserError(f"--board needs 3 to 100 inner corners each way (e.g. 9x6), got {text}")
     return cols, rows
 
 

@@ -83,8 +83,13 @@ def _matrix(node, name: str, path: Path) -> np.ndarray:
         a = np.asarray(data, dtype=np.float64).ravel()
     except (TypeError, ValueError):
         raise UserError(f"{path}: '{name}' is not a list of numbers") from None
-    if rows and cols and a.size != int(rows) * int(cols):
-        raise UserError(f"{path}: '{name}' has {a.size} values, expected {rows}x{cols}")
+    if rows is not None or cols is not None:
+        try:
+            rows, cols = int(rows), int(cols)
+        except (TypeError, ValueError):
+            raise UserError(f"{path}: '{name}' needs whole numbers for rows and cols, got {rows!r} and {cols!r}") from None
+        if a.size != rows * cols:
+            raise UserError(f"{path}: '{name}' has {a.size} values, expected {rows}x{cols}")
     return a
 
 

@@ -93,6 +93,8 @@ def cmd_synth(args) -> int:
     from .synth.engine import SynthConfig, generate
     from .synth.preview import preview
     obj_ids = args.obj_ids
+    if args.preview and (Path(args.preview).is_dir() or Path(args.preview).suffix.lower() not in (".png", ".jpg", ".jpeg")):
+        raise UserError(f"--preview {args.preview}: name a .png or .jpg file")  # before the rendering, not after
     cfg = SynthConfig(models_dir=str(args.models), backgrounds_dir=str(args.backgrounds or shared_data() / "backgrounds"),
                       seed=args.seed, prior=args.prior, obj_ids=obj_ids, mesh_faces=args.mesh_faces, depth=args.depth,
                       p_table=args.p_table, p_gloss=args.gloss, distractors=args.distractors,
@@ -448,7 +450,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--models", required=True, help="folder of obj_NNNNNN.ply (mm)")
     s.add_argument("--out", required=True, help="output split folder")
     s.add_argument("--images", type=positive_int, required=True, help="number of scene images")
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--seed", type=nonnegative_int, default=0)
     s.add_argument("--backgrounds", help="folder of background photos (default: the shared data's)")
     s.add_argument("--prior", choices=["table", "sphere"], default="table",
                    help="pose prior: objects upright on a table (LM-O) or any orientation (hand-held)")
@@ -497,7 +499,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--latent", type=positive_int, default=128)
     s.add_argument("--minutes", type=positive_float, default=45.0, help="autoencoder time budget")
     _add_regressor_budget(s)
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--seed", type=nonnegative_int, default=0)
     s.add_argument("--max-images", type=positive_int, help="use only the first N scene images")
     s.add_argument("--models-info", help="models_info.json (default: computed from the meshes)")
     s.add_argument("--init-from", metavar="CKPT",
@@ -516,7 +518,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--jitter-scale", type=positive_float,
                    help="log-size noise (standard deviation) of the jittered training boxes (default: the "
                         "autoencoder's, 0.08)")
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--seed", type=nonnegative_int, default=0)
     s.set_defaults(func=cmd_refit_heads)
 
     s = sub.add_parser("join-heads", help="one pose head averaging the head sets of bundles that share an encoder")
@@ -555,7 +557,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--input", type=positive_int, nargs=2, default=(320, 240), metavar=("W", "H"), help="network input size")
     s.add_argument("--batch", type=positive_int, default=32)
     s.add_argument("--lr", type=positive_float, default=2e-3, help="peak learning rate (lower to fine-tune)")
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--seed", type=nonnegative_int, default=0)
     s.add_argument("--max-images", type=positive_int, default=None, help="use only the first N images")
     s.add_argument("--init-from", metavar="CKPT|BUNDLE",
                    help="start from another run's detector_ckpt_*.pt (same width and classes), e.g. to fine-tune on "
@@ -587,7 +589,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--json", required=True, help="where the tables go (the report command reads it)")
     s.add_argument("--mlp-minutes", type=positive_float, default=1.0, help="time budget of each MLP")
     s.add_argument("--max-train", type=positive_int, default=20000, help="subsample the training crops to this many")
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--seed", type=nonnegative_int, default=0)
     s.set_defaults(func=cmd_ablate)
 
     s = sub.add_parser("report", help="reproduction report: our numbers next to the thesis's (Markdown + PNG)")

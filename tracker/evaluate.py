@@ -57,6 +57,10 @@ def evaluate(model_dir, scene_dir, json_path=None, boxes: str = "gt", mode: str 
     from .scoring import score_results, write_metrics_json
     if boxes not in ("gt", "detector"):
         raise UserError(f"--boxes must be gt or detector, not '{boxes}'")
+    from .bop import check_output_file
+    for f, what in ((json_path, "--json"), (bop_csv, "--bop-csv")):
+        if f is not None:
+            check_output_file(f, what)
     est = PoseEstimator(model_dir)
     if detector_trees_weight is not None:
         est.trees_weight["detector"] = float(detector_trees_weight)

@@ -426,6 +426,9 @@ def _gyro_speed(imu: ImuLog, grid: np.ndarray, h: float, dt: float) -> tuple[np.
     return s, v
 
 
+MAX_SEARCH_S = 600.0  # the widest clock-offset search (10 ms steps: memory and time grow with it)
+
+
 def estimate_time_offset(run: Run, imu: ImuLog, max_offset_s: float = 2.0, centre_s: float | None = None,
                          baseline_s: float | None = None, inliers: np.ndarray | None = None) -> dict:
     """Clock offset (IMU minus camera) maximising the normalised cross-correlation of the
@@ -435,6 +438,9 @@ def estimate_time_offset(run: Run, imu: ImuLog, max_offset_s: float = 2.0, centr
     difference of their start times. ``inliers``: frames to use (default: those passing
     :func:`consistent_frames`). Returns ``{"offset_s", "peak", "lags_s", "corr"}``.
     """
+    if not 0 < max_offset_s <= MAX_SEARCH_S:
+        raise UserError(f"--max-offset must lie in (0, {MAX_SEARCH_S:.0f}] s, not {max_offset_s:g}; for clocks "
+                        f"further apart pass their offset with --time-offset")
     if inliers is None:
         inliers = consistent_frames(run.R)
     if np.count_nonzero(inliers) < 3:

@@ -15,13 +15,15 @@ from .errors import UserError
 
 def write_scene_video(scene_dir, out_dir, quality: int = 95, fps: float = 10.0) -> dict:
     """Returns the video size and the PSNR of its frames against the originals."""
+    if not 1 <= quality <= 100 or not 0 < fps <= 1000:
+        raise UserError(f"quality must be 1-100 and fps in (0, 1000], got {quality} and {fps}")
     scene = load_scene(scene_dir)
     out = Path(out_dir)
+    if out.exists() and out.resolve() == scene.root.resolve():
+        raise UserError(f"--out {out_dir} is the scene itself: the recording goes into another folder")
     out.mkdir(parents=True, exist_ok=True)
     path = out / SCENE_VIDEOS[0]
     h, w = scene.read_rgb(scene.im_ids[0]).shape[:2]
-    if not 1 <= quality <= 100 or not fps > 0:
-        raise UserError(f"quality must be 1-100 and fps positive, got {quality} and {fps}")
     writer = cv2.VideoWriter(str(path), cv2.CAP_OPENCV_MJPEG, cv2.VideoWriter_fourcc(*"MJPG"), fps, (w, h))
     if not writer.isOpened():
         raise UserError(f"{path}: OpenCV cannot write an MJPEG video here")
