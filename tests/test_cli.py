@@ -55,6 +55,11 @@ def test_bad_bundle_and_bad_source_are_one_line_errors(tmp_path, data_dir):
     assert_one_line_error(p)
     assert "synth_config.json" in p.stderr or "train" in p.stderr  # no training data (or no torch)
     assert not (tmp_path / "b").exists()
+    (tmp_path / "empty.mp4").write_bytes(b"")
+    for source in ("/dev/video7", tmp_path / "empty.mp4"):  # no OpenCV / FFmpeg log lines before ours
+        p = run("track", "--source", source, "--max-frames", 1, "--out", tmp_path / "run")
+        assert_one_line_error(p)
+        assert p.stderr.strip().startswith("error:") and p.stderr.strip().count("\n") == 0, p.stderr
 
 
 def test_calibrate_command(data_dir, tmp_path):

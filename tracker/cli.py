@@ -676,6 +676,9 @@ def main(argv=None) -> int:
     if not argv:
         argv = ["demo"]
     args = parser.parse_args(argv)
+    if not os.environ.get("AUTOPOSE_DEBUG"):  # OpenCV's and FFmpeg's own log lines would precede our one-line errors
+        os.environ.setdefault("OPENCV_LOG_LEVEL", "ERROR")
+        os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
     warnings.simplefilter("default")
     warnings.formatwarning = lambda msg, cat, *a, **k: f"warning: {msg}\n"
     try:
