@@ -1,8 +1,13 @@
 #!/usr/bin/env python3
 """autopose command line: ``python app.py --help``. With no arguments, runs the demo."""
+import os
 import sys
 
-from tracker.cli import main
+if not os.environ.get("AUTOPOSE_DEBUG"):  # set before OpenCV loads: its and FFmpeg's own log lines
+    os.environ.setdefault("OPENCV_LOG_LEVEL", "ERROR")  # would come before our one-line errors
+    os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
+
+from tracker.cli import main  # noqa: E402
 
 if __name__ == "__main__":
     sys.exit(main())

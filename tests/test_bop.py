@@ -55,8 +55,8 @@ def _mutate(path, change):
 
 
 @pytest.mark.parametrize("file, change, match", [
-    ("scene_camera.json", lambda d: {**d, "3": {**d["3"], "cam_K": [-572.4] + d["3"]["cam_K"][1:]}}, "not a camera matrix"),
-    ("scene_camera.json", lambda d: {**d, "3": {**d["3"], "cam_K": [0] * 9}}, "not a camera matrix"),
+    ("scene_camera.json", lambda d: {**d, "3": {**d["3"], "cam_K": [-572.4] + d["3"]["cam_K"][1:]}}, "focal lengths must be positive"),
+    ("scene_camera.json", lambda d: {**d, "3": {**d["3"], "cam_K": [0] * 9}}, "focal lengths must be positive"),
     ("scene_camera.json", lambda d: {**d, "abc": d["3"]}, "'abc' is not an image id"),
     ("scene_camera.json", lambda d: list(d.values()), "expected an object keyed by image id"),
     ("scene_gt.json", lambda d: {**d, "3": [{**d["3"][0], "cam_R_m2c": [0] * 9}] + d["3"][1:]}, "not a rotation"),
@@ -143,7 +143,7 @@ def test_a_binary_results_file_is_refused(tmp_path):
 def test_a_json_output_that_is_a_folder_is_refused_before_writing(tmp_path):
     with pytest.raises(UserError, match="is a folder; name a file"):
         bop.save_models_info(tmp_path, {1: {"diameter": 1.0}})
-    assert list(tmp_path.iterdir()) == []
+    assert list(tmp_path.iterdir()) == [] and not tmp_path.with_suffix(".tmp").exists()
 
 
 def test_symmetry_transforms_discretise_continuous_ones():
@@ -168,6 +168,8 @@ def test_models_info_round_trip(tmp_path):
     ({"diameter": "102"}, "positive number"),
     ({"diameter": 102.1, "symmetries_discrete": [[1, 2, 3]]}, "4x4 transforms"),
     ({"diameter": 102.1, "symmetries_discrete": [[2.0] + [0.0] * 15]}, "not a rotation"),
+    ({"diameter": 102.1, "symmetries_discrete": [np.diag([1.0, 1.0, -1.0, 1.0]).ravel().tolist()]}, "a reflection"),
+    ({"diameter": 10 ** 400}, "positive number"),
     ({"diameter": 102.1, "symmetries_continuous": [{"axis": [0, 0, 0]}]}, "symmetries_continuous"),
     ([1, 2], "expected an object of objects"),
 ])

@@ -128,11 +128,15 @@ def test_an_unwritable_output_is_a_one_line_error(tmp_path, data_dir):
 
 
 def test_outputs_that_cannot_be_written_are_refused_before_the_work(tmp_path, data_dir):
-    dev = data_dir / "lmo" / "dev"
+    import shutil
+    dev = tmp_path / "dev"  # a copy: the guard under test is what keeps pack-scene out of the scene
+    shutil.copytree(data_dir / "lmo" / "dev", dev)
     (tmp_path / "folder").mkdir()
     for args, said in (
             (["eval", "--model", "models/lmo", "--data", dev, "--json", tmp_path / "folder"], "is a folder"),
-            (["synth", "--models", dev.parent / "models", "--out", tmp_path / "s", "--images", 2,
+            (["score", "--results", tmp_path / "r.csv", "--data", dev, "--models", "models/lmo/meshes",
+              "--json", tmp_path / "folder"], "is a folder"),
+            (["synth", "--models", data_dir / "lmo" / "models", "--out", tmp_path / "s", "--images", 2,
               "--preview", tmp_path / "folder"], "name a .png or .jpg"),
             (["pack-scene", "--data", dev, "--out", dev], "is the scene itself")):
         p = run(*args, timeout=60)

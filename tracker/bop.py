@@ -9,6 +9,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -16,7 +17,7 @@ import cv2
 import numpy as np
 
 from .errors import UserError
-from .geometry import is_rotation
+from .geometry import intrinsics_problem, is_rotation
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg")
 SCENE_VIDEOS = ("rgb.avi", "rgb.mp4", "rgb.mkv")  # a scene's frames as one video, im_ids in order
@@ -42,7 +43,7 @@ def check_output_file(path, what: str = "output") -> Path:
     return path
 
 
-def _dump_json(path: Path, obj) -> Path:
+def write_json(path: Path, obj) -> Path:
     path = check_output_file(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(path.suffix + ".tmp")
@@ -93,9 +94,9 @@ def load_scene_camera(path) -> dict[int, dict]:
             K = np.asarray(v["cam_K"], dtype=np.float64).reshape(3, 3)
         except (KeyError, ValueError, TypeError):
             raise UserError(f"{path}: image {k} has no valid 'cam_K' (9 numbers)") from None
-        if not (np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0 and np.allclose(K[2], [0, 0, 1])):
-            raise UserError(f"{path}: image {k}'s cam_K is not a camera matrix (fx, fy > 0, last row 0 0 1): "
-                            f"{K.ravel().tolist()}")
+        problem = intrinsics_problem(K)
+        if problem:
+            raise UserError(f"{path}: image {k}'s cam_K: {problem}")
         entry = dict(v)
         entry["K"] = K
         out[int(k)] = entry
@@ -112,7 +113,7 @@ def save_scene_camera(path, cameras: dict[int, dict]) -> Path:
             if k in c:
                 e[k] = np.asarray(c[k], dtype=float).ravel().tolist()
         obj[str(im_id)] = e
-    return _dump_json(path, obj)
+    return write_json(path, obj)
 
 
 def load_scene_gt(path, info_path=None) -> dict[int, list[GtInstance]]:
@@ -145,13 +146,13 @@ def load_scene_gt(path, info_path=None) -> dict[int, list[GtInstance]]:
 def save_scene_gt(path, gt: dict[int, list[GtInstance]]) -> Path:
     obj = {str(k): [{"cam_R_m2c": g.R.ravel().tolist(), "cam_t_m2c": g.t.ravel().tolist(),
                      "obj_id": int(g.obj_id)} for g in gt[k]] for k in sorted(gt)}
-    return _dump_json(path, obj)
+    return write_json(path, obj)
 
 
 def save_scene_gt_info(path, gt: dict[int, list[GtInstance]]) -> Path:
     keys = ("bbox_obj", "bbox_visib", "px_count_all", "px_count_valid", "px_count_visib", "visib_fract")
     obj = {str(k): [{kk: g.info[kk] for kk in keys if kk in g.info} for g in gt[k]] for k in sorted(gt)}
-    return _dump_json(path, obj)
+    return write_json(path, obj)
 
 
 # --------------------------------------------------------------------------- scenes
@@ -290,6 +291,13 @@ def load_scene(root, require_gt: bool = False) -> Scene:
 # --------------------------------------------------------------------------- models_info
 
 
+def _finite(x) -> bool:
+    try:
+        return math.isfinite(float(x))
+    except (OverflowError, TypeError, ValueError):
+        return False
+
+
 def _is_vector(v, nonzero: bool = False) -> bool:
     """Three finite numbers (not all zero, with ``nonzero``)."""
     try:
@@ -312,7 +320,7 @@ def load_models_info(path) -> dict[int, dict]:
         if "diameter" not in v:
             raise UserError(f"{where} has no 'diameter'")
         d = v["diameter"]
-        if isinstance(d, bool) or not isinstance(d, (int, float)) or not np.isfinite(d) or d <= 0:
+        if isinstance(d, bool) or not isinstance(d, (int, float)) or not _finite(d) or d <= 0:
             raise UserError(f"{where}: 'diameter' must be a positive number of mm, not {d!r}")
         syms = v.get("symmetries_discrete", [])
         if not isinstance(syms, list) or any(np.asarray(t, dtype=object).size != 16 for t in syms):
@@ -321,9 +329,8 @@ def load_models_info(path) -> dict[int, dict]:
             T = np.asarray(syms, dtype=np.float64).reshape(-1, 4, 4)
         except (TypeError, ValueError):
             raise UserError(f"{where}: 'symmetries_discrete' holds something that is not a number") from None
-        if len(T) and not (np.all(np.isfinite(T)) and np.allclose(T[:, :3, :3] @ T[:, :3, :3].transpose(0, 2, 1),
-                                                                   np.eye(3), atol=1e-3)):
-            raise UserError(f"{where}: a 'symmetries_discrete' transform is not a rotation")
+        if not all(is_rotation(t[:3, :3], tol=1e-3) and np.all(np.isfinite(t)) for t in T):
+            raise UserError(f"{where}: a 'symmetries_discrete' transform is not a rotation (a reflection, or not orthonormal)")
         conts = v.get("symmetries_continuous", [])
         if not isinstance(conts, list) or not all(
                 isinstance(c, dict) and _is_vector(c.get("axis"), nonzero=True) and _is_vector(c.get("offset", [0, 0, 0]))
@@ -334,7 +341,7 @@ def load_models_info(path) -> dict[int, dict]:
 
 
 def save_models_info(path, info: dict[int, dict]) -> Path:
-    return _dump_json(path, {str(k): info[k] for k in sorted(info)})
+    return write_json(path, {str(k): info[k] for k in sorted(info)})
 
 
 def symmetry_transforms(info: dict, continuous_steps: int = 360) -> np.ndarray:

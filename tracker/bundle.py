@@ -8,6 +8,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
+import math
 import shutil
 import tempfile
 from dataclasses import dataclass
@@ -153,7 +154,11 @@ def check_manifest(manifest: dict, where) -> None:
         for key, kind in (("id", int), ("mesh", str), ("diameter", (int, float))):
             if not isinstance(o.get(key), kind) or isinstance(o.get(key), bool):
                 bad(f"object {o.get('id', '?')}: '{key}' missing or not a {getattr(kind, '__name__', 'number')}")
-        if not o["diameter"] > 0:
+        try:
+            good = math.isfinite(float(o["diameter"])) and o["diameter"] > 0
+        except OverflowError:
+            good = False
+        if not good:
             bad(f"object {o['id']}: 'diameter' must be positive (mm), not {o['diameter']}")
     for key in ("detector", "heads"):
         if key in manifest and not isinstance(manifest[key], dict):

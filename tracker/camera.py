@@ -15,7 +15,7 @@ import numpy as np
 import yaml
 
 from .errors import UserError
-from .geometry import scale_intrinsics
+from .geometry import intrinsics_problem, scale_intrinsics
 
 # LM-O / Linemod Kinect camera (BOP), 640x480
 LMO_K = np.array([[572.4114, 0.0, 325.2611], [0.0, 573.57043, 242.04899], [0.0, 0.0, 1.0]])
@@ -56,13 +56,11 @@ class Camera:
 
 
 def check_camera(cam: Camera) -> None:
-    K = cam.K
-    if not np.all(np.isfinite(K)) or not np.all(np.isfinite(cam.dist)):
-        raise UserError("camera file has non-finite numbers in camera_matrix or distortion")
-    if K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise UserError(f"camera focal lengths must be positive, got fx={K[0, 0]}, fy={K[1, 1]}")
-    if not np.allclose(K[2], [0, 0, 1]) or K[1, 0] != 0:
-        raise UserError("camera_matrix must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]]")
+    problem = intrinsics_problem(cam.K)
+    if problem:
+        raise UserError(f"camera_matrix: {problem}")
+    if not np.all(np.isfinite(cam.dist)):
+        raise UserError("distortion_coefficients hold non-finite numbers")
     if cam.width <= 0 or cam.height <= 0:
         raise UserError(f"camera image size must be positive, got {cam.width}x{cam.height}")
     if cam.dist.size not in (4, 5, 8, 12, 14):
@@ -149,9 +147,12 @@ def read_camera(path) -> Camera:
         text = path.read_text()
     except (OSError, UnicodeDecodeError) as e:
         raise UserError(f"{path}: cannot read camera file ({e.__class__.__name__})") from None
-    if text.lstrip().startswith("%YAML:1.0") or "!!opencv-matrix" in text:
-        return _read_opencv_yaml(path)
-    return _read_ros_yaml(path, text)
+    try:
+        if text.lstrip().startswith("%YAML:1.0") or "!!opencv-matrix" in text:
+            return _read_opencv_yaml(path)
+        return _read_ros_yaml(path, text)
+    except UserError as e:  # the camera's own checks: name the file
+        raise UserError(str(e) if str(e).startswith(str(path)) else f"{path}: {e}") from None
 
 
 def write_camera(path, cam: Camera, extra: dict | None = None) -> Path:

@@ -118,7 +118,9 @@ def cmd_join_splits(args) -> int:
 
 
 def cmd_score(args) -> int:
+    from .bop import check_output_file
     from .scoring import score_results, write_metrics_json
+    check_output_file(args.json, "--json")
     m = score_results(args.results, args.data, args.models, models_info=args.models_info)
     write_metrics_json(args.json, m)
     from .report import fmt_num  # (no instances: the recalls are null)
@@ -305,7 +307,9 @@ def cmd_bench(args) -> int:
 
     import numpy as np
 
+    from .bop import check_output_file
     from .loop import TrackConfig, run_track
+    check_output_file(args.json, "--json")
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(args.out) if args.out else Path(tmp)
         s = run_track(TrackConfig(args.source, args.model, out, args.calib, args.rerun, args.frames, False,
@@ -676,9 +680,6 @@ def main(argv=None) -> int:
     if not argv:
         argv = ["demo"]
     args = parser.parse_args(argv)
-    if not os.environ.get("AUTOPOSE_DEBUG"):  # OpenCV's and FFmpeg's own log lines would precede our one-line errors
-        os.environ.setdefault("OPENCV_LOG_LEVEL", "ERROR")
-        os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
     warnings.simplefilter("default")
     warnings.formatwarning = lambda msg, cat, *a, **k: f"warning: {msg}\n"
     try:

@@ -164,6 +164,18 @@ def ray_rotation(centre_px: np.ndarray, K: np.ndarray) -> np.ndarray:
     return Rotation.from_rotvec(rotvec.reshape(-1, 3)).as_matrix().reshape(*c.shape[:-1], 3, 3)
 
 
+def intrinsics_problem(K) -> str | None:
+    """What is wrong with a 3x3 camera matrix [[fx, s, cx], [0, fy, cy], [0, 0, 1]] (None: nothing)."""
+    K = np.asarray(K, dtype=np.float64)
+    if K.shape != (3, 3) or not np.all(np.isfinite(K)):
+        return "the camera matrix is not 3x3 finite numbers"
+    if K[0, 0] <= 0 or K[1, 1] <= 0:
+        return f"focal lengths must be positive, got fx={K[0, 0]:g}, fy={K[1, 1]:g}"
+    if not np.allclose(K[2], [0, 0, 1]) or K[1, 0] != 0:
+        return f"the camera matrix must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got {K.ravel().tolist()}"
+    return None
+
+
 def scale_intrinsics(K: np.ndarray, from_size: tuple[int, int], to_size: tuple[int, int]) -> np.ndarray:
     """Intrinsics of the same camera read out at another resolution.
 

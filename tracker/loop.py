@@ -2,17 +2,17 @@
 -> logs. ``app.py track`` and ``app.py demo`` are thin layers over :func:`run_track`."""
 from __future__ import annotations
 
-import json
 import os
 import signal
 import time
 from dataclasses import dataclass, replace
+from functools import partial
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from .bop import Estimate
+from .bop import Estimate, write_json
 from .camera import Undistorter, read_camera
 from .errors import UserError
 from .estimator import Detection, PoseEstimator
@@ -181,6 +181,8 @@ def run_track(cfg: TrackConfig, log=print) -> dict:
     diam = {o["id"]: o["diameter"] for o in est.bundle.objects}
     cam = read_camera(cfg.calib) if cfg.calib else None
     undist = Undistorter(cam) if cam else None
+    if cam is None and not isinstance(src, BopSceneSource):  # only BOP scenes carry their intrinsics
+        raise UserError("this source needs a camera file: pass --calib FILE")
     out.mkdir(parents=True, exist_ok=True)  # only now: a run that cannot start leaves no empty folder
     csv_sink = CsvSink(out)
     renderer = rr_sink = None
@@ -285,18 +287,19 @@ def run_track(cfg: TrackConfig, log=print) -> dict:
                         f"outside what it was trained on); expect larger errors there")
                 out_of_prior += bad
             interrupted = stopper.stop
-    except KeyboardInterrupt:  # (a signal that came before the loop's handler was in place)
+    except KeyboardInterrupt:  # a signal in the instants around the loop's own handler
         interrupted = True
     except Exception as e:  # a fatal error mid-run: the frames done so far keep their summary
         failure = e
     finally:
-        with _Deferred(log, "closing the run's files"):
+        with _Deferred(log, "closing the run's files") as closing:
             csv_sink.close()
             src.close()
             if rr_sink is not None:
                 rr_sink.close()
             if renderer is not None:
                 renderer.close()
+    interrupted = interrupted or closing.hit
     wall = time.perf_counter() - t_run
     summary = {
         "frames": n, "poses": n_poses, "wall_s": round(wall, 2), "fps": round(n / wall, 2) if wall > 0 else None,
@@ -313,22 +316,30 @@ def run_track(cfg: TrackConfig, log=print) -> dict:
                                                else f"{type(failure).__name__}: {failure}"),
     }
     # written at once (an interrupted or failed run keeps it), again with the accuracy below
-    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    save_summary = partial(write_json, out / "summary.json")  # (a file replaced whole, never half-written)
+    save_summary(summary)
     if failure is not None:
         raise failure
     has_gt = isinstance(src, BopSceneSource) and bool(src.scene.gt) and not cfg.loop
     gt_objs = {g.obj_id for i in src.ids[:n] for g in src.scene.gt.get(i, [])} if has_gt else set()
-    # (a subset of the objects would count the rest as missed; an interrupted run is not scored)
+    # (a subset of the objects would count the rest as missed; a run whose frames were cut short is not scored)
     if has_gt and n and gt_objs <= set(est.obj_ids) and not cfg.obj_ids and not interrupted:
         from .scoring import score_results
-        with _Deferred(log, "scoring the poses against the ground truth") as deferred:
-            m = score_results(out / "poses.csv", src.scene.root, est.bundle.root / "meshes",
-                              models_info=est.bundle.root / "meshes" / "models_info.json",
-                              im_ids=src.ids[:n], scene_id=_scene_id(cfg.source))
-        summary["accuracy"] = {k: m[k] for k in ("n_gt", "add_recall", "ar_mssd", "ar_mspd", "re_median_deg",
-                                                 "te_median_mm", "visibility_source")}
-        summary["interrupted"] = deferred.hit
-        (out / "summary.json").write_text(json.dumps(summary, indent=1))
+        with _Deferred(log, "scoring the poses against the ground truth") as scoring:
+            try:
+                m = score_results(out / "poses.csv", src.scene.root, est.bundle.root / "meshes",
+                                  models_info=est.bundle.root / "meshes" / "models_info.json",
+                                  im_ids=src.ids[:n], scene_id=_scene_id(cfg.source))
+                summary["accuracy"] = {k: m[k] for k in ("n_gt", "add_recall", "ar_mssd", "ar_mspd",
+                                                         "re_median_deg", "te_median_mm", "visibility_source")}
+            except KeyboardInterrupt:  # the second Ctrl-C: no accuracy, the rest stands
+                summary["accuracy_skipped"] = True
+            except UserError as e:
+                summary["error"] = f"scoring: {e}"
+                save_summary(summary)
+                raise
+            summary["interrupted"] = scoring.hit  # a Ctrl-C came; the frames were all done (and scored, once)
+            save_summary(summary)
     return summary
 
 

@@ -39,7 +39,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from . import metrics
-from .bop import (Estimate, Scene, _dump_json, load_models_info, load_scene, read_results,
+from .bop import (Estimate, Scene, write_json, load_models_info, load_scene, read_results,
                   symmetry_transforms)
 from .errors import UserError
 
@@ -143,7 +143,7 @@ def models_info_for(models_dir, models_info=None) -> dict[int, dict]:
     info = compute_models_info(load_models(models_dir))
     _INFO_CACHE[key] = info
     try:
-        _dump_json(cached, {str(k): v for k, v in info.items()})
+        write_json(cached, {str(k): v for k, v in info.items()})
     except OSError:
         pass  # a read-only home only costs the recomputation next time
     return info
@@ -460,4 +460,4 @@ def score_results(results_csv, scene_dir, models_dir, models_info=None, im_ids=N
 
 def write_metrics_json(path, metrics_dict: dict) -> Path:
     """Write the metrics JSON (atomically; numpy values become plain numbers)."""
-    return _dump_json(path, metrics_dict)
+    return write_json(path, metrics_dict)

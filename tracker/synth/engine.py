@@ -29,7 +29,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..bop import _dump_json
+from ..bop import write_json
 from ..camera import LMO_K
 from ..errors import UserError
 from ..visibility import scene_visibility
@@ -263,7 +263,7 @@ class _ChunkWriter:
             order = sorted(c["cam"], key=int)
             for name, key in (("scene_camera", "cam"), ("scene_gt", "gt"), ("scene_gt_info", "info"),
                               ("clean_crops", "win")):
-                _dump_json(root / f"{name}.json", {k: c[key][k] for k in order})
+                write_json(root / f"{name}.json", {k: c[key][k] for k in order})
 
     def prune(self, n_chunks: int):
         """After an interruption: delete the files of images whose records never arrived (a
@@ -312,7 +312,7 @@ def generate(cfg: SynthConfig, out_dir, n_images: int, workers: int = 2, batch: 
             (out / f"{chunk:06d}" / sub).mkdir(parents=True, exist_ok=True)
     meta = {"config": asdict(cfg), "images": n_images, "chunk": CHUNK,
             "command": command or " ".join(sys.argv), "created": time.strftime("%Y-%m-%d %H:%M:%S")}
-    _dump_json(out / "synth_config.json", meta)
+    write_json(out / "synth_config.json", meta)
 
     tasks = [(list(range(i, min(i + batch, n_images))), str(out)) for i in range(0, n_images, batch)]
     writer = _ChunkWriter(out)
@@ -357,6 +357,6 @@ def generate(cfg: SynthConfig, out_dir, n_images: int, workers: int = 2, batch: 
             writer.prune((n_images - 1) // CHUNK + 1)
     dt = time.perf_counter() - t0
     meta.update(images_written=done, seconds=round(dt, 1), interrupted=interrupted)
-    _dump_json(out / "synth_config.json", meta)
+    write_json(out / "synth_config.json", meta)
     return SynthReport(done, n_inst, n_crops, dt, done / dt, n_crops / dt, _peak_rss_mb(resource.RUSAGE_SELF),
                        _peak_rss_mb(resource.RUSAGE_CHILDREN), workers, interrupted)
