@@ -432,11 +432,12 @@ MAX_SEARCH_S = 600.0  # the widest clock-offset search (10 ms steps: memory and 
 def estimate_time_offset(run: Run, imu: ImuLog, max_offset_s: float = 2.0, centre_s: float | None = None,
                          baseline_s: float | None = None, inliers: np.ndarray | None = None) -> dict:
     """Clock offset (IMU minus camera) maximising the normalised cross-correlation of the
-    two angular-speed signals over ``centre_s +- max_offset_s``.
+    two angular-speed signals over ``centre_s +- max_offset_s`` (the IMU's from its orientations
+    and, when the log has them, from its gyro: whichever correlates better).
 
     ``centre_s`` defaults to 0 when the two clocks' time ranges overlap, else to the
     difference of their start times. ``inliers``: frames to use (default: those passing
-    :func:`consistent_frames`). Returns ``{"offset_s", "peak", "lags_s", "corr"}``.
+    :func:`consistent_frames`). Returns ``{"offset_s", "peak", "lags_s", "corr", "signal"}``.
     """
     if not 0 < max_offset_s <= MAX_SEARCH_S:
         raise UserError(f"--max-offset must lie in (0, {MAX_SEARCH_S:.0f}] s, not {max_offset_s:g}; for clocks "
@@ -458,28 +459,37 @@ def estimate_time_offset(run: Run, imu: ImuLog, max_offset_s: float = 2.0, centr
     n_lag = int(math.ceil(max_offset_s / dt))
     lags = centre_s + dt * np.arange(-n_lag, n_lag + 1)
     igrid = grid[0] + lags[0] + dt * np.arange(grid.size + 2 * n_lag)
-    if imu.gyro is not None:
-        s, vs = _gyro_speed(imu, igrid, h, dt)
-    else:
-        s, vs = _rotation_speed(imu._track(), igrid, h)
     # tame tracking outliers (flips give huge one-frame speeds)
     if vc.any():
         c = np.minimum(c, np.percentile(c[vc], 99))
-    if vs.any():
-        s = np.minimum(s, np.percentile(s[vs], 99.5))
     M = grid.size
     need = max(20, int(0.3 * vc.sum()))
-    corr = np.full(lags.size, np.nan)
-    for j in range(lags.size):
-        m = vc & vs[j:j + M]
-        if m.sum() < need:
-            continue
-        x, y = c[m], s[j:j + M][m]
-        x = x - x.mean()
-        y = y - y.mean()
-        den = math.sqrt(float(x @ x) * float(y @ y))
-        if den > 0:
-            corr[j] = float(x @ y) / den
+
+    def correlation(s, vs):
+        if vs.any():
+            s = np.minimum(s, np.percentile(s[vs], 99.5))
+        corr = np.full(lags.size, np.nan)
+        for j in range(lags.size):
+            m = vc & vs[j:j + M]
+            if m.sum() < need:
+                continue
+            x, y = c[m], s[j:j + M][m]
+            x = x - x.mean()
+            y = y - y.mean()
+            den = math.sqrt(float(x @ x) * float(y @ y))
+            if den > 0:
+                corr[j] = float(x @ y) / den
+        return corr
+
+    # the IMU's own orientation changes over h, measured as the camera's are; and, where the log
+    # has them, the gyro's rates (free of the orientation filter's lag, but a path length where
+    # the camera's is a chord: they part where the motion jerks between frames): the clearer peak
+    signals = {"orientation": correlation(*_rotation_speed(imu._track(), igrid, h))}
+    if imu.gyro is not None:
+        signals["gyro"] = correlation(*_gyro_speed(imu, igrid, h, dt))
+    peak = {k: np.nanmax(v) if np.isfinite(v).any() else -np.inf for k, v in signals.items()}
+    signal = max(signals, key=lambda k: (peak[k], k == "gyro"))
+    corr = signals[signal]
     if not np.isfinite(corr).any():
         raise UserError(f"{imu.source}: the IMU log does not overlap the run's {run.t[-1] - run.t[0]:.1f} s "
                         f"within +-{max_offset_s} s of a clock offset of {centre_s:.3f} s "
@@ -491,7 +501,7 @@ def estimate_time_offset(run: Run, imu: ImuLog, max_offset_s: float = 2.0, centr
         den = a - 2 * b + cc
         if den < 0:
             off += dt * float(np.clip(0.5 * (a - cc) / den, -0.5, 0.5))
-    return {"offset_s": off, "peak": float(corr[j]), "lags_s": lags, "corr": corr}
+    return {"offset_s": off, "peak": float(corr[j]), "lags_s": lags, "corr": corr, "signal": signal}
 
 
 # --------------------------------------------------------------------------- frames A, B
@@ -707,6 +717,7 @@ def compare(run: Run, imu: ImuLog, mode: str = "full", *, time_offset_s: float |
         "offset_source": "given" if time_offset_s is not None else "estimated",
         "offset_xcorr_s": None if xc is None else float(xc["offset_s"]),
         "xcorr_peak": None if xc is None else float(xc["peak"]),
+        "xcorr_signal": None if xc is None else xc["signal"],
         "imu_quat_convention": conv,
         "mounting_quat_wxyz": quat_from_matrix(B).tolist(),
         "mounting_angle_deg": mount_angle,
