@@ -129,6 +129,18 @@ def test_strong_colour_changes_colours_not_boxes():
         assert np.array_equal(a, b)
     assert not torch.allclose(std, strong, atol=0.05)
     assert torch.equal(std, again)      # the default is the standard path, draw for draw
+    torch.manual_seed(0)
+    mild, _ = augment_batch(x.clone(), boxes, np.random.default_rng(3), torch, colour="mild")
+    grey = x.clone()
+    grey[:] = x.mean(dim=1, keepdim=True)  # grey pixels: saturation and white balance are all that differ
+    torch.manual_seed(0)
+    g_std, _ = augment_batch(grey.clone(), boxes, np.random.default_rng(3), torch)
+    torch.manual_seed(0)
+    g_mild, _ = augment_batch(grey.clone(), boxes, np.random.default_rng(3), torch, colour="mild")
+    def tint(y):  # each image's mean colour away from grey (the noise averages out)
+        c = y.mean(dim=(2, 3))
+        return float((c - c.mean(dim=1, keepdim=True)).abs().max())
+    assert tint(g_mild) < 0.005 < 0.02 < tint(g_std) and not torch.equal(mild, std)
 
 
 def test_pasted_objects_join_the_targets():

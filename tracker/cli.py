@@ -580,10 +580,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "pasted over training images as real clutter that is not a target (docs/models.md)")
     s.add_argument("--cutout-share", type=fraction, default=None, metavar="P",
                    help="share of training images that get 1-3 cut-outs pasted over them (with --cutouts; default 0.5)")
-    s.add_argument("--colour", choices=("standard", "strong"), default="standard",
+    s.add_argument("--colour", choices=("standard", "strong", "mild"), default="standard",
                    help="photometric augmentation: brightness, contrast, saturation, white balance, blur and noise; "
                         "'strong' adds grey-scale blends, per-channel gains and offsets, hue turns, inverted "
-                        "channels and wider blurs (as detectors trained on renders for BOP do)")
+                        "channels and wider blurs (as detectors trained on renders for BOP do); 'mild' leaves "
+                        "out saturation and white balance (the objects' colours kept)")
     _add_precision(s)
     s.set_defaults(func=cmd_train_detector)
 

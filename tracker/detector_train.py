@@ -34,7 +34,7 @@ CUTOUT_SHARE = 0.5     # share of training images that get cut-outs when --cutou
 # recipe keys added after checkpoints were first written, at the value a run without them records
 RECIPE_ADDED = {"cutouts": None, "cutout_share": 0.0, "boxes": "visible", "frozen_batchnorm": False,
                 "colour": "standard"}
-COLOUR_AUGS = ("standard", "strong")
+COLOUR_AUGS = ("standard", "strong", "mild")
 
 
 def target_box(info: dict, kind: str, width: int, height: int) -> list[float]:
@@ -298,7 +298,8 @@ def augment_batch(x, boxes_list, rng: np.random.Generator, torch, occlusion: flo
     ``objects``), then (with ``cutouts`` and ``cutout_share`` > 0) real cut-outs over a share of
     the items (``paste_cutouts``), then colour
     (brightness, contrast, saturation, per-channel gain), blur and noise; with ``colour``
-    'strong', ``strong_colour`` before the noise.
+    'strong', ``strong_colour`` before the noise; with 'mild', no saturation or per-channel
+    gain (the objects' colours kept).
     ``x``: (B, 3, H, W) float in [0, 1]."""
     from torch.nn import functional as F
     B, _, H, W = x.shape
@@ -332,9 +333,12 @@ def augment_batch(x, boxes_list, rng: np.random.Generator, torch, occlusion: flo
     x = x * g                                                   # brightness
     m = x.mean(dim=(1, 2, 3), keepdim=True)
     x = (x - m) * torch.from_numpy(rng.uniform(0.6, 1.4, (B, 1, 1, 1)).astype(np.float32)) + m  # contrast
-    grey = x.mean(dim=1, keepdim=True)
-    x = (x - grey) * torch.from_numpy(rng.uniform(0.5, 1.5, (B, 1, 1, 1)).astype(np.float32)) + grey  # saturation
-    x = x * torch.from_numpy(rng.uniform(0.85, 1.15, (B, 3, 1, 1)).astype(np.float32))  # white balance
+    sat = torch.from_numpy(rng.uniform(0.5, 1.5, (B, 1, 1, 1)).astype(np.float32))
+    wb = torch.from_numpy(rng.uniform(0.85, 1.15, (B, 3, 1, 1)).astype(np.float32))
+    if colour != "mild":  # ('mild' keeps the objects' colours: drawn all the same, so the rest is as standard)
+        grey = x.mean(dim=1, keepdim=True)
+        x = (x - grey) * sat + grey                             # saturation
+        x = x * wb                                              # white balance
     blur = rng.random(B) < 0.3
     if blur.any():
         k = torch.tensor([1, 4, 6, 4, 1], dtype=torch.float32)
