@@ -291,10 +291,13 @@ def load_scene(root, require_gt: bool = False) -> Scene:
 # --------------------------------------------------------------------------- models_info
 
 
-def _finite(x) -> bool:
+def positive_number(x) -> bool:
+    """A JSON number (not a bool) that is finite and above 0: a diameter in mm."""
+    if isinstance(x, bool) or not isinstance(x, (int, float)):
+        return False
     try:
-        return math.isfinite(float(x))
-    except (OverflowError, TypeError, ValueError):
+        return math.isfinite(float(x)) and x > 0
+    except OverflowError:  # an integer too large for a float
         return False
 
 
@@ -320,7 +323,7 @@ def load_models_info(path) -> dict[int, dict]:
         if "diameter" not in v:
             raise UserError(f"{where} has no 'diameter'")
         d = v["diameter"]
-        if isinstance(d, bool) or not isinstance(d, (int, float)) or not _finite(d) or d <= 0:
+        if not positive_number(d):
             raise UserError(f"{where}: 'diameter' must be a positive number of mm, not {d!r}")
         syms = v.get("symmetries_discrete", [])
         if not isinstance(syms, list) or any(np.asarray(t, dtype=object).size != 16 for t in syms):

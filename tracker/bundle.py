@@ -8,12 +8,12 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
-import math
 import shutil
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
+from .bop import positive_number
 from .errors import UserError
 
 MANIFEST = "manifest.json"
@@ -154,11 +154,7 @@ def check_manifest(manifest: dict, where) -> None:
         for key, kind in (("id", int), ("mesh", str), ("diameter", (int, float))):
             if not isinstance(o.get(key), kind) or isinstance(o.get(key), bool):
                 bad(f"object {o.get('id', '?')}: '{key}' missing or not a {getattr(kind, '__name__', 'number')}")
-        try:
-            good = math.isfinite(float(o["diameter"])) and o["diameter"] > 0
-        except OverflowError:
-            good = False
-        if not good:
+        if not positive_number(o["diameter"]):
             bad(f"object {o['id']}: 'diameter' must be positive (mm), not {o['diameter']}")
     for key in ("detector", "heads"):
         if key in manifest and not isinstance(manifest[key], dict):

@@ -302,12 +302,11 @@ def cmd_track(args) -> int:
 
 
 def cmd_bench(args) -> int:
-    import json
     import tempfile
 
     import numpy as np
 
-    from .bop import check_output_file
+    from .bop import check_output_file, write_json
     from .loop import TrackConfig, run_track
     check_output_file(args.json, "--json")
     with tempfile.TemporaryDirectory() as tmp:
@@ -331,8 +330,7 @@ def cmd_bench(args) -> int:
            "source": str(args.source), "model": str(args.model), "rerun": args.rerun, "overlay": not args.no_overlay,
            "boxes": s["boxes"], "detect_every": args.detect_every, "obj_ids": args.obj_ids,
            "accuracy": s.get("accuracy"), "interrupted": s["interrupted"]}
-    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.json).write_text(json.dumps(res, indent=1))
+    write_json(args.json, res)
     print(f"{res['frames']} frames, {res['objects_per_frame']} objects/frame: {res['fps']} fps (median), "
           f"{res['ms_per_object']} ms per object (crop + encoder + regressors)")
     print("median / p95 ms: " + ", ".join(f"{k} {v['median']:.1f}/{v['p95']:.1f}" for k, v in res["stages_ms"].items()))

@@ -66,27 +66,23 @@ class _Stopper:
             signal.signal(s, h)
 
 
-class _Deferred:
+class _Deferred(_Stopper):
     """SIGINT / SIGTERM while the run's files are being finished: the first is noted (and
     said) and the work goes on; a second one stops it (KeyboardInterrupt)."""
 
     def __init__(self, log, what: str):
-        self.log, self.what, self.hit, self._old = log, what, False, {}
+        super().__init__()
+        self.log, self.what = log, what
 
-    def __enter__(self):
-        for s in (signal.SIGINT, signal.SIGTERM):
-            self._old[s] = signal.signal(s, self._handle)
-        return self
+    @property
+    def hit(self) -> bool:
+        return self.stop
 
     def _handle(self, *_):
-        if self.hit:
+        if self.stop:
             raise KeyboardInterrupt
-        self.hit = True
+        self.stop = True
         self.log(f"{self.what}; interrupt again to skip it")
-
-    def __exit__(self, *exc):
-        for s, h in self._old.items():
-            signal.signal(s, h)
 
 
 def _gt_detections(frame, boxes_of, known) -> list[Detection]:
@@ -223,10 +219,8 @@ def run_track(cfg: TrackConfig, log=print) -> dict:
                 h, w = frame.rgb.shape[:2]
                 if frame.K is not None:
                     K, rgb = frame.K, frame.rgb
-                elif undist is not None:
+                else:  # (a source without intrinsics and no --calib was refused before the loop)
                     K, rgb = undist.camera_for(w, h).K, undist(frame.rgb)
-                else:
-                    raise UserError("this source needs a camera file: pass --calib FILE")
                 ms["undistort"] = 1000 * (time.perf_counter() - t)
                 t = time.perf_counter()
                 if schedule is not None:
