@@ -65,6 +65,14 @@ def test_garbled_camera_files_are_user_errors(tmp_path, text):
         read_camera(p)
 
 
+def test_a_null_distortion_is_named_as_empty(tmp_path):
+    p = tmp_path / "ros.yaml"
+    p.write_text("image_width: 640\nimage_height: 480\ncamera_matrix: [600, 0, 320, 0, 600, 240, 0, 0, 1]\n"
+                 "distortion_coefficients: null\n")
+    with pytest.raises(UserError, match="'distortion_coefficients' is empty"):
+        read_camera(p)
+
+
 def test_missing_camera_file(tmp_path):
     with pytest.raises(UserError, match="not found"):
         read_camera(tmp_path / "nope.yml")

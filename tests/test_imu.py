@@ -143,6 +143,14 @@ def test_an_offset_search_wider_than_ten_minutes_is_refused(noiseless):
         imu.estimate_time_offset(run, rlog, max_offset_s=1e9)
 
 
+def test_an_imu_clock_far_from_the_run_is_named_briefly(noiseless):
+    _, run, rlog, _ = noiseless
+    far = imu.imu_log_from_arrays(1e300 * (1 + np.arange(len(rlog.t))), rlog.q, source="far.csv")
+    with pytest.raises(UserError, match=r"does not overlap") as e:
+        imu.estimate_time_offset(run, far)
+    assert "1e+300 s" in str(e.value) and len(str(e.value)) < 300
+
+
 def test_sign_flipped_quaternions_give_the_same_result(noiseless, tmp_path):
     root, run, log, rep = noiseless
     rng = np.random.default_rng(0)

@@ -1,5 +1,6 @@
 """The frame loop on short replays: files written, rerun recording readable, threaded capture."""
 import json
+import socket
 import time
 from pathlib import Path
 
@@ -11,7 +12,7 @@ import rerun as rr
 from tracker.bop import read_results
 from tracker.errors import UserError
 from tracker.loop import TrackConfig, run_track
-from tracker.sinks import STAGES
+from tracker.sinks import RERUN_GRPC_PORT, STAGES, RerunSink, port_taken
 from tracker.sources import CameraSource, open_source
 
 
@@ -192,3 +193,19 @@ def test_unknown_object_ids_are_refused(tiny_bundle, data_dir, tmp_path):
         run_track(TrackConfig(str(data_dir / "lmo" / "dev"), str(tiny_bundle), tmp_path / "run", obj_ids=[1, 99]),
                   log=lambda m: None)
     assert not (tmp_path / "run").exists()
+
+
+def test_rerun_serve_on_a_taken_port_is_one_clear_error(tmp_path):
+    """rerun's own servers print errors of their own before raising; the port is checked first."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        assert port_taken(s.getsockname()[1])
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        try:
+            s.bind(("0.0.0.0", RERUN_GRPC_PORT))
+        except OSError:
+            pytest.skip(f"port {RERUN_GRPC_PORT} is in use on this machine")
+        s.listen()
+        with pytest.raises(UserError, match=f"port {RERUN_GRPC_PORT} already in use"):
+            RerunSink("serve", tmp_path, {}, {}, np.eye(3), (640, 480))

@@ -77,6 +77,9 @@ def _matrix(node, name: str, path: Path) -> np.ndarray:
         rows, cols = node.get("rows"), node.get("cols")
     else:
         data, rows, cols = node, None, None
+    if data is None:
+        raise UserError(f"{path}: '{name}' is empty; give its numbers (or leave out distortion_coefficients "
+                        f"for a camera without distortion)")
     try:
         a = np.asarray(data, dtype=np.float64).ravel()
     except (TypeError, ValueError):

@@ -492,7 +492,7 @@ def estimate_time_offset(run: Run, imu: ImuLog, max_offset_s: float = 2.0, centr
     corr = signals[signal]
     if not np.isfinite(corr).any():
         raise UserError(f"{imu.source}: the IMU log does not overlap the run's {run.t[-1] - run.t[0]:.1f} s "
-                        f"within +-{max_offset_s} s of a clock offset of {centre_s:.3f} s "
+                        f"within +-{max_offset_s:g} s of a clock offset of {centre_s:.6g} s "
                         "(pass it with --time-offset, or widen the search with --max-offset; are both clocks in seconds?)")
     j = int(np.nanargmax(corr))
     off = float(lags[j])

@@ -3,6 +3,7 @@ so an interrupt loses at most the frame in flight) and rerun."""
 from __future__ import annotations
 
 import csv
+import socket
 import sys
 from pathlib import Path
 
@@ -39,6 +40,21 @@ class CsvSink:
         self._tf.close()
 
 
+RERUN_GRPC_PORT, RERUN_WEB_PORT = 9876, 9090  # rerun's defaults for serve_grpc / serve_web_viewer
+
+
+def port_taken(port: int) -> bool:
+    """Whether a server already listens on ``port`` (a socket bound and released, as the server
+    will bind it; reuse-address, so connections closing from an earlier run do not count)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind(("0.0.0.0", port))
+        except OSError:
+            return True
+    return False
+
+
 def _first_line(e: Exception) -> str:
     return (str(e).strip().splitlines() or [type(e).__name__])[0][:160]
 
@@ -68,13 +84,17 @@ class RerunSink:
                 raise UserError(f"--rerun spawn: cannot start the rerun viewer ({_first_line(e)}); without a "
                                 f"display use --rerun serve (web viewer) or --rerun save") from None
         elif mode == "serve":
+            taken = [p for p in (RERUN_GRPC_PORT, RERUN_WEB_PORT) if port_taken(p)]
+            if taken:  # checked first: rerun's servers print their own errors before raising
+                raise UserError(f"--rerun serve: port {' and '.join(map(str, taken))} already in use (another run "
+                                f"serving?); stop it, or use --rerun save")
             try:
-                uri = rr.serve_grpc()
-                rr.serve_web_viewer(connect_to=uri, open_browser=False)
+                uri = rr.serve_grpc(grpc_port=RERUN_GRPC_PORT)
+                rr.serve_web_viewer(web_port=RERUN_WEB_PORT, connect_to=uri, open_browser=False)
             except Exception as e:
                 raise UserError(f"--rerun serve: cannot start rerun's servers ({_first_line(e)}); is another run "
-                                f"serving on ports 9876 / 9090? Stop it, or use --rerun save") from None
-            print(f"rerun web viewer: http://localhost:9090/?url={uri}", file=sys.stderr)
+                                f"serving on ports {RERUN_GRPC_PORT} / {RERUN_WEB_PORT}? Stop it, or use --rerun save") from None
+            print(f"rerun web viewer: http://localhost:{RERUN_WEB_PORT}/?url={uri}", file=sys.stderr)
         rr.log("world", rr.ViewCoordinates.RDF, static=True)  # OpenCV camera: x right, y down, z forward
         for oid, mesh in meshes.items():
             cols = getattr(mesh.visual, "vertex_colors", None)
