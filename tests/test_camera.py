@@ -69,7 +69,10 @@ def test_a_null_distortion_is_named_as_empty(tmp_path):
     p = tmp_path / "ros.yaml"
     p.write_text("image_width: 640\nimage_height: 480\ncamera_matrix: [600, 0, 320, 0, 600, 240, 0, 0, 1]\n"
                  "distortion_coefficients: null\n")
-    with pytest.raises(UserError, match="'distortion_coefficients' is empty"):
+    with pytest.raises(UserError, match="'distortion_coefficients' is empty; give its numbers .or leave it out"):
+        read_camera(p)
+    p.write_text("image_width: 640\nimage_height: 480\ncamera_matrix: {rows: 3, cols: 3, data: null}\n")
+    with pytest.raises(UserError, match="'camera_matrix' is empty; give its numbers$"):
         read_camera(p)
 
 

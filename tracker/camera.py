@@ -78,8 +78,8 @@ def _matrix(node, name: str, path: Path) -> np.ndarray:
     else:
         data, rows, cols = node, None, None
     if data is None:
-        raise UserError(f"{path}: '{name}' is empty; give its numbers (or leave out distortion_coefficients "
-                        f"for a camera without distortion)")
+        hint = " (or leave it out for a camera without distortion)" if name == "distortion_coefficients" else ""
+        raise UserError(f"{path}: '{name}' is empty; give its numbers{hint}")
     try:
         a = np.asarray(data, dtype=np.float64).ravel()
     except (TypeError, ValueError):
