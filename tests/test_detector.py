@@ -607,3 +607,31 @@ def test_tune_heads_picks_the_trees_weight_on_renders(tiny_bundle, tmp_path):
         tune_trees_weight(src, split, weights=(1.5,), out_dir=tmp_path / "bad", log=lambda *a: None)
     with pytest.raises(UserError, match="has no detector"):
         tune_trees_weight(tiny_bundle, split, out_dir=tmp_path / "bad", log=lambda *a: None)
+
+
+def test_ema_averages_the_weights_and_is_what_is_exported(tiny_bundle, tmp_path):
+    torch = pytest.importorskip("torch")
+    from tracker.detector_train import ema_update, train_detector
+    net = torch.nn.Sequential(torch.nn.Conv2d(1, 1, 1), torch.nn.BatchNorm2d(1))
+    avg = {k: v.float().clone() for k, v in net.state_dict().items() if v.is_floating_point()}
+    assert "1.num_batches_tracked" not in avg  # integer counters are not averaged
+    with torch.no_grad():
+        net[0].weight.add_(1.0)
+    w0 = float(avg["0.weight"])
+    ema_update(avg, net, 0.9, step=0)  # the ramp: decay (1 + 0) / (10 + 0) = 0.1 at the first step
+    assert float(avg["0.weight"]) == pytest.approx(0.1 * w0 + 0.9 * (w0 + 1), abs=1e-6)
+    ema_update(avg, net, 0.9, step=1000)  # then the decay itself
+    assert float(avg["0.weight"]) == pytest.approx(0.9 * (0.1 * w0 + 0.9 * (w0 + 1)) + 0.1 * (w0 + 1), abs=1e-6)
+    with pytest.raises(UserError, match=r"--ema is a decay in \[0, 1\)"):
+        train_detector(tiny_bundle.parent / "split", tiny_bundle, minutes=0.01, ema=1.0)
+    # a tiny run: the exported network is the average (not the last weights), and a resume keeps the recipe
+    root = tmp_path / "lmo"
+    shutil.copytree(tiny_bundle, root)
+    logs = []
+    d = train_detector(tiny_bundle.parent / "split", root, minutes=0.01, width=4, batch=2, ema=0.99, log=logs.append)
+    assert d["training"]["ema"] == 0.99 and any("moving average" in str(l) for l in logs)
+    ckpt = torch.load(next((tmp_path / "lmo.work").glob("detector_ckpt_*.pt")), weights_only=True)
+    assert set(ckpt["ema"]) < set(ckpt["model"]) and any(
+        not torch.equal(ckpt["ema"][k], ckpt["model"][k].float()) for k in ckpt["ema"])
+    with pytest.raises(UserError, match=r"with --ema 0\.99: rerun"):
+        train_detector(tiny_bundle.parent / "split", root, minutes=0.02, width=4, batch=2, log=lambda *a: None)

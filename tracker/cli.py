@@ -187,7 +187,7 @@ def cmd_train_detector(args) -> int:
                        input_h=args.input[1], batch=args.batch, seed=args.seed, max_images=args.max_images,
                        lr=args.lr, init_from=args.init_from, occlusion=args.occlusion, paste_objects=args.paste_objects,
                        cutouts=args.cutouts, cutout_share=args.cutout_share,
-                       precision=args.precision, box_kind=args.boxes, colour=args.colour,
+                       precision=args.precision, box_kind=args.boxes, colour=args.colour, ema=args.ema,
                        command="app.py " + " ".join(sys.argv[1:]))
     v = d["training"]["validation_synthetic"]
     from .report import fmt_num
@@ -583,6 +583,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "'strong' adds grey-scale blends, per-channel gains and offsets, hue turns, inverted "
                         "channels and wider blurs (as detectors trained on renders for BOP do); 'mild' leaves "
                         "out saturation and white balance (the objects' colours kept)")
+    s.add_argument("--ema", type=float, default=0.0, metavar="DECAY",
+                   help="validate and export the exponential moving average of the weights with this decay "
+                        "(e.g. 0.999: about the last 1,000 steps) instead of the last weights; 0: off")
     _add_precision(s)
     s.set_defaults(func=cmd_train_detector)
 

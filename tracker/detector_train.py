@@ -33,7 +33,7 @@ CUTOUT_MAX_SIDE = 160  # px a cut-out is kept at; pastes reach 40 % of the input
 CUTOUT_SHARE = 0.5     # share of training images that get cut-outs when --cutouts is given
 # recipe keys added after checkpoints were first written, at the value a run without them records
 RECIPE_ADDED = {"cutouts": None, "cutout_share": 0.0, "boxes": "visible", "frozen_batchnorm": False,
-                "colour": "standard"}
+                "colour": "standard", "ema": 0.0}
 COLOUR_AUGS = ("standard", "strong", "mild")
 
 
@@ -406,6 +406,18 @@ def _weights_from_bundle(torch, path, width: int, classes: list[int]) -> dict:
     return sd
 
 
+def ema_update(ema: dict, model, decay: float, step: int) -> None:
+    """One step of the weights' exponential moving average (``ema``: name -> float tensor, every
+    floating-point entry of the model's state, BatchNorm statistics too). The decay ramps up as
+    (1 + step) / (10 + step) until it reaches ``decay``, so the early, random weights fade fast."""
+    import torch
+    d = min(decay, (1 + step) / (10 + step))
+    with torch.no_grad():
+        for k, v in model.state_dict().items():
+            if k in ema:
+                ema[k].mul_(d).add_(v.float(), alpha=1 - d)
+
+
 def _recipe_options(old: dict, new: dict) -> str:
     """The options of recipe ``old`` that differ from ``new``, as a user would pass them (the
     share of cut-outs goes unsaid where the old run had none)."""
@@ -427,14 +439,18 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
                    val_parts: int = 20, threads: int = 2, init_from=None, occlusion: float = 0.0,
                    paste_objects: float = 0.0, cutouts=None, cutout_share: float | None = None, log=print,
                    command: str | None = None, precision: str = "auto", box_kind: str = "visible",
-                   colour: str = "standard") -> dict:
+                   colour: str = "standard", ema: float = 0.0) -> dict:
     """``box_kind``: the targets are the objects' visible boxes, or their whole silhouettes'
     (``amodal``, clipped to the image: a box's size and centre then follow the object's
-    distance and position behind whatever hides part of it)."""
+    distance and position behind whatever hides part of it). ``ema`` > 0: validate and export
+    the exponential moving average of the weights with this decay (``ema_update``), not the
+    last weights."""
     if box_kind not in BOX_KINDS:
         raise UserError(f"--boxes must be one of {', '.join(BOX_KINDS)}, not '{box_kind}'")
     if colour not in COLOUR_AUGS:
         raise UserError(f"--colour must be one of {', '.join(COLOUR_AUGS)}, not '{colour}'")
+    if not 0.0 <= ema < 1.0:
+        raise UserError(f"--ema is a decay in [0, 1) (0: off; 0.999 averages about the last 1,000 steps), not {ema}")
     if paste_objects > 0 and occlusion <= 0:  # before torch is imported: nothing to wait for
         raise UserError("--paste-objects cuts some of the occlusion rectangles around objects: "
                         "it needs --occlusion above 0 as well")
@@ -473,13 +489,14 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
     ckpt = work / f"detector_ckpt_{key}.pt"
     state = {"step": 0, "seconds": 0.0, "history": []}
+    averaged = None  # the weights' moving average (--ema)
     # weights to start from, and whether its BatchNorms stay frozen (a bundle's exported network)
     init_weights, frozen = _init_weights(torch, init_from, width, spec.classes) if init_from else (None, False)
     # what a resumed run must share with the run that wrote the checkpoint (the data and the
     # network are in the key): otherwise one run silently mixes two augmentations or optimisers.
     # Not --minutes: a larger budget trains a finished run on (docs/models.md)
     recipe = {"batch": batch, "lr": lr, "seed": seed, "occlusion": occlusion, "paste_objects": paste_objects,
-              **RECIPE_ADDED, "boxes": box_kind, "frozen_batchnorm": frozen, "colour": colour}
+              **RECIPE_ADDED, "boxes": box_kind, "frozen_batchnorm": frozen, "colour": colour, "ema": ema}
     if cutouts:
         recipe.update(cutouts=cutout_set, cutout_share=CUTOUT_SHARE if cutout_share is None else cutout_share)
     if ckpt.is_file():
@@ -493,6 +510,7 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
             model.load_state_dict(z["model"])
             opt.load_state_dict(z["opt"])
             state = z["state"]
+            averaged = z.get("ema")
             log(f"resumed from {ckpt}: step {state['step']}, {state['seconds'] / 60:.1f} min done")
         else:
             raise UserError(f"{ckpt} is the checkpoint of another network (width or classes differ): "
@@ -503,6 +521,8 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
         model.load_state_dict(init_weights)
         state["init_from"] = str(init_from)
         log(f"started from the weights of {init_from}; new optimiser, schedule and budget")
+    if ema and averaged is None:  # a new run (a resumed one shares its recipe, so its checkpoint holds the average)
+        averaged = {k: v.detach().float().clone() for k, v in model.state_dict().items() if v.is_floating_point()}
     budget = 60.0 * minutes
     log(f"detector: {n_params / 1e6:.2f} M parameters, {len(tr)} train / {len(va)} validation images, "
         f"{input_w}x{input_h} input, budget {minutes:.0f} min, {precision} training passes")
@@ -513,7 +533,7 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
 
     def save():
         torch.save({"model": model.state_dict(), "opt": opt.state_dict(), "state": state, "width": width,
-                    "classes": spec.classes, "recipe": recipe}, ckpt)
+                    "classes": spec.classes, "recipe": recipe, **({"ema": averaged} if averaged else {})}, ckpt)
 
     try:
         model.train()
@@ -541,6 +561,8 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
             opt.zero_grad()
             loss.backward()
             opt.step()
+            if averaged:
+                ema_update(averaged, model, ema, state["step"])
             losses.append(float(loss.detach()))
             state["step"] += 1
             now = time.perf_counter()
@@ -558,6 +580,9 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
         raise UserError(f"interrupted; checkpoint saved in {ckpt}, rerun the same command to resume") from None
     bar.close()
     save()
+    if averaged:
+        model.load_state_dict({**model.state_dict(), **averaged})
+        log(f"validated and exported: the weights' moving average (decay {ema})")
     model.eval()
     model.to(memory_format=torch.contiguous_format)
 
