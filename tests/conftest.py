@@ -8,7 +8,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
-from tracker.paths import shared_data  # noqa: E402
+from tracker.core.paths import shared_data  # noqa: E402
 
 DATA = shared_data()
 
@@ -22,13 +22,13 @@ def data_dir() -> Path:
 
 @pytest.fixture(scope="session")
 def lmo_dev(data_dir):
-    from tracker.bop import load_scene
+    from tracker.core.bop import load_scene
     return load_scene(data_dir / "lmo" / "dev", require_gt=True)
 
 
 @pytest.fixture(scope="session")
 def lmo_models(data_dir):
-    from tracker.meshes import load_models
+    from tracker.core.meshes import load_models
     return load_models(data_dir / "lmo" / "models")
 
 
@@ -36,8 +36,8 @@ def lmo_models(data_dir):
 def tiny_bundle(tmp_path_factory, data_dir):
     """A bundle for all 8 LM-O objects, trained for seconds: exercises code paths only."""
     pytest.importorskip("torch")
-    from tracker.synth.engine import SynthConfig, generate
-    from tracker.train import train_bundle
+    from tracker.build.synth.engine import SynthConfig, generate
+    from tracker.build.train import train_bundle
     root = tmp_path_factory.mktemp("tiny_bundle")
     cfg = SynthConfig(models_dir=str(data_dir / "lmo" / "models"), backgrounds_dir=str(data_dir / "backgrounds"),
                       seed=4, objects_per_image=(8, 8))

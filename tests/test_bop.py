@@ -4,9 +4,9 @@ import shutil
 import numpy as np
 import pytest
 
-from tracker import bop
-from tracker.errors import UserError
-from tracker.geometry import matrix_from_axis_angle, project
+from tracker.core import bop
+from tracker.core.errors import UserError
+from tracker.core.geometry import matrix_from_axis_angle, project
 
 
 def test_load_dev_scene(lmo_dev):

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from tests.conftest import REPO
-from tracker.bundle import open_bundle, write_manifest
-from tracker.errors import UserError
-from tracker.estimator import PoseEstimator
+from tracker.core.bundle import open_bundle, sha256
+from tracker.core.errors import UserError
+from tracker.runtime.estimator import PoseEstimator
 
 
 @pytest.fixture()
@@ -19,22 +19,64 @@ def bundle(tmp_path):
 
 
 def _rehash(b, change=None):
-    """Re-hash the folder as the bundle's maker would: the tampering is then invisible to the hashes."""
-    m = {k: v for k, v in json.loads((b / "manifest.json").read_text()).items() if k not in ("files", "format")}
+    """Re-hash the folder as the bundle's maker would, with the manifest's JSON edited by ``change``
+    (which may break it): the tampering is then invisible to the hashes."""
+    m = json.loads((b / "manifest.json").read_text())
     if change:
         change(m)
-    write_manifest(b, m)
+    m["files"] = {str(p.relative_to(b)): {"sha256": sha256(p), "bytes": p.stat().st_size}
+                  for p in sorted(b.rglob("*")) if p.is_file() and p.name != "manifest.json"}
+    (b / "manifest.json").write_text(json.dumps(m))
 
 
 def test_a_hashed_file_of_the_wrong_kind_is_refused(bundle):
-    shutil.copy(bundle / "codebook_aae.joblib", bundle / "pose_head.joblib")
+    shutil.copy(bundle / "codebook.npz", bundle / "pose_head.npz")
     _rehash(bundle)
-    with pytest.raises(UserError, match="Codebook, not a PoseHead"):
+    with pytest.raises(UserError, match="unreadable pose head"):
         PoseEstimator(bundle)
-    (bundle / "pose_head.joblib").write_bytes(b"")
+    (bundle / "pose_head.json").write_text("")
     _rehash(bundle)
-    with pytest.raises(UserError, match="unreadable pose_head"):
+    with pytest.raises(UserError, match="unreadable pose head"):
         PoseEstimator(bundle)
+
+
+def test_a_pickle_inside_a_bundle_is_never_loaded(bundle, tmp_path):
+    """An object array in the .npz (numpy stores it as a pickle) is refused, not unpickled."""
+    ran = tmp_path / "ran"
+
+    class Evil:
+        def __reduce__(self):
+            return (ran.write_text, ("code ran",))
+    with np.load(bundle / "pose_head.npz") as z:
+        arrays = dict(z)
+    key = next(k for k in arrays if k.endswith("rotation.W0"))
+    arrays[key] = np.array([Evil()], dtype=object)
+    np.savez(bundle / "pose_head.npz", **arrays)
+    _rehash(bundle)
+    with pytest.raises(UserError, match="unreadable pose head"):
+        PoseEstimator(bundle)
+    assert not ran.exists()
+
+
+def test_no_file_in_the_shipped_bundles_is_a_pickle():
+    """Loading a bundle must not be able to run code: no pickle anywhere under models/, and
+    every array file reads with allow_pickle=False."""
+    for p in (REPO / "models").rglob("*"):
+        if not p.is_file():
+            continue
+        head = p.read_bytes()[:2]
+        assert not (head[:1] == b"\x80" and head[1:2] in b"\x02\x03\x04\x05"), f"{p} is a pickle"
+        assert p.suffix not in (".joblib", ".pkl", ".pickle", ".pt"), p
+        if p.suffix == ".npz":
+            with np.load(p, allow_pickle=False) as z:
+                for k in z.files:
+                    assert z[k].dtype != object
+
+
+def test_a_bundle_of_the_pickled_format_is_refused_with_advice(bundle):
+    _rehash(bundle, lambda m: m.update(format=1))
+    with pytest.raises(UserError, match="format 1.*pickle.*rebuild"):
+        open_bundle(bundle)
 
 
 @pytest.mark.parametrize("change, what", [
@@ -59,18 +101,18 @@ def test_a_manifest_that_misstates_the_latent_size_is_refused(bundle):
 
 
 def test_decimate_rewrites_the_overlay_meshes_of_a_bundle_that_has_them(bundle):
-    from tracker.decimate import add_overlay_meshes
+    from tracker.build.decimate import add_overlay_meshes
     before = open_bundle(bundle).manifest
-    assert before["overlay_faces"] != 400 and all("overlay_mesh" in o for o in before["objects"])
+    assert before.extra["overlay_faces"] != 400 and all(o.overlay_mesh for o in before.objects)
     add_overlay_meshes(bundle, 400, log=lambda *a: None)
     after = open_bundle(bundle).manifest  # verifies every hash again
-    assert after["overlay_faces"] == 400
-    rel = after["objects"][0]["overlay_mesh"]
-    assert after["files"][rel]["sha256"] != before["files"][rel]["sha256"]
+    assert after.extra["overlay_faces"] == 400
+    rel = after.objects[0].overlay_mesh
+    assert after.files[rel]["sha256"] != before.files[rel]["sha256"]
 
 
 def test_a_staged_change_lands_whole_or_not_at_all(bundle):
-    from tracker.bundle import staged_bundle, sha256
+    from tracker.core.bundle import staged_bundle, write_manifest
     before = sha256(bundle / "manifest.json")
     with pytest.raises(KeyboardInterrupt):
         with staged_bundle(bundle, bundle) as stage:
@@ -81,18 +123,18 @@ def test_a_staged_change_lands_whole_or_not_at_all(bundle):
     assert sorted(p.name for p in bundle.parent.iterdir()) == ["lmo"]  # no staging folder left
 
     with staged_bundle(bundle, bundle) as stage:
-        m = {k: v for k, v in json.loads((stage / "manifest.json").read_text()).items() if k not in ("files", "format")}
-        m["name"] = "changed"
+        m = open_bundle(stage).manifest.copy()
+        m.name = "changed"
         write_manifest(stage, m)
-    assert open_bundle(bundle).manifest["name"] == "changed"
+    assert open_bundle(bundle).manifest.name == "changed"
     assert sorted(p.name for p in bundle.parent.iterdir()) == ["lmo"]
 
 
 
 def test_exact_and_detector_boxes_get_the_manifests_trees_weights(bundle, lmo_dev):
-    from tracker.estimator import Detection
-    from tracker.evaluate import gt_boxes, gt_instances_with_boxes
-    from tracker.meshes import load_models
+    from tracker.runtime.estimator import Detection
+    from tracker.evaluation.evaluate import gt_boxes, gt_instances_with_boxes
+    from tracker.core.meshes import load_models
     im = lmo_dev.im_ids[0]
     boxes, _ = gt_boxes(lmo_dev, load_models(bundle / "meshes", sorted({g.obj_id for g in lmo_dev.gt[im]})), [im])
     inst = [(o, b) for o, b, _ in gt_instances_with_boxes(lmo_dev.gt[im], boxes[im], 0.1) if o in (1, 5)]

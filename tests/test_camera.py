@@ -4,9 +4,9 @@ import cv2
 import numpy as np
 import pytest
 
-from tracker.calibration import calibrate, parse_board
-from tracker.camera import Camera, Undistorter, read_camera, write_camera
-from tracker.errors import UserError
+from tracker.core.calibration import calibrate, parse_board
+from tracker.core.camera import Camera, Undistorter, read_camera, write_camera
+from tracker.core.errors import UserError
 
 ROS_YAML = """image_width: 640
 image_height: 480

@@ -4,7 +4,7 @@ import sys
 
 
 from tests.conftest import REPO
-from tracker.camera import read_camera
+from tracker.core.camera import read_camera
 
 CONVENTION_COMMANDS = ["demo", "track", "calibrate", "synth", "train", "eval", "score", "bench", "imu"]
 
@@ -150,9 +150,9 @@ def test_empty_ground_truth_and_missing_ablate_tables_are_clear_errors(tmp_path,
 
     import pytest
 
-    from tracker.errors import UserError
-    from tracker.evaluate import evaluate
-    from tracker.report import build_report
+    from tracker.core.errors import UserError
+    from tracker.evaluation.evaluate import evaluate
+    from tracker.evaluation.report import build_report
     scene = tmp_path / "scene"
     (scene / "rgb").mkdir(parents=True)
     shutil.copy(data_dir / "lmo" / "dev" / "rgb" / "000003.png", scene / "rgb")
@@ -173,8 +173,8 @@ def test_track_on_a_scene_with_objects_the_bundle_does_not_know(tmp_path, data_d
 
     import pytest
 
-    from tracker.errors import UserError
-    from tracker.loop import TrackConfig, run_track
+    from tracker.core.errors import UserError
+    from tracker.runtime.loop import TrackConfig, run_track
     dev = data_dir / "lmo" / "dev"
     scene = tmp_path / "scene"
     (scene / "rgb").mkdir(parents=True)

@@ -5,11 +5,11 @@ import shutil
 import numpy as np
 import pytest
 
-from tracker.detection_metrics import detection_ap
-from tracker.detector import DetectorSpec, Letterbox, decode, letterbox, nms
-from tracker.geometry import iou_matrix
-from tracker.errors import UserError
-from tracker.estimator import Detection
+from tracker.evaluation.detection_metrics import detection_ap
+from tracker.runtime.detector import DetectorSpec, Letterbox, decode, letterbox, nms
+from tracker.core.geometry import iou_matrix
+from tracker.core.errors import UserError
+from tracker.runtime.estimator import Detection
 
 
 def _maps(spec, peaks_):
@@ -90,7 +90,7 @@ def test_ap_hand_cases():
 
 def test_occlusion_pastes_clutter_and_drops_hidden_boxes():
     torch = pytest.importorskip("torch")
-    from tracker.detector_train import occlude
+    from tracker.build.detector_train import occlude
     x = torch.zeros(2, 3, 60, 80)
     x[1] = 1.0  # the second item is the only source of clutter for the first
     # class, x, y, w, h: a box over the whole image and a tiny one
@@ -107,7 +107,7 @@ def test_occlusion_pastes_clutter_and_drops_hidden_boxes():
 
 
 def test_hue_turns_keep_grey_and_cycle_the_channels():
-    from tracker.detector_train import hue_turns
+    from tracker.build.detector_train import hue_turns
     R = hue_turns([0.0, 2 * np.pi / 3, 1.0])
     assert np.allclose(R[0], np.eye(3), atol=1e-6)
     assert np.allclose(R[1] @ [1, 0, 0], [0, 1, 0], atol=1e-6)   # a third of a turn: red -> green
@@ -117,7 +117,7 @@ def test_hue_turns_keep_grey_and_cycle_the_channels():
 
 def test_strong_colour_changes_colours_not_boxes():
     torch = pytest.importorskip("torch")
-    from tracker.detector_train import augment_batch
+    from tracker.build.detector_train import augment_batch
     x = torch.rand(16, 3, 48, 64)
     boxes = [np.array([[0, 10, 8, 30, 20]], np.float32) for _ in range(16)]
     torch.manual_seed(0)
@@ -145,7 +145,7 @@ def test_strong_colour_changes_colours_not_boxes():
 
 def test_pasted_objects_join_the_targets():
     torch = pytest.importorskip("torch")
-    from tracker.detector_train import occlude
+    from tracker.build.detector_train import occlude
     x = torch.zeros(2, 3, 60, 80)
     x[1, :, 20:30, 40:52] = 1.0  # item 1's object, class 3: the only bright pixels
     boxes = [np.zeros((0, 5), np.float32), np.array([[3, 40, 20, 12, 10]], np.float32)]
@@ -174,7 +174,7 @@ def _write_cutouts(folder):
 
 
 def test_cutouts_load_cropped_premultiplied_rgba_and_skip_images_without_transparency(tmp_path):
-    from tracker.detector_train import load_cutouts
+    from tracker.build.detector_train import load_cutouts
     _write_cutouts(tmp_path / "cut" / "sub")
     logs = []
     (c,), ident = load_cutouts(tmp_path / "cut", logs.append)  # found in a subfolder
@@ -193,7 +193,7 @@ def test_cutouts_load_cropped_premultiplied_rgba_and_skip_images_without_transpa
 
 def test_cutouts_are_blended_by_their_alpha_and_hide_boxes():
     torch = pytest.importorskip("torch")
-    from tracker.detector_train import paste_cutouts
+    from tracker.build.detector_train import paste_cutouts
     cut = np.zeros((20, 40, 4), np.uint8)   # premultiplied: pure red on the right, clear on the left
     cut[:, 20:] = (255, 0, 0, 255)
     grid = np.array([[k, 4 * (k % 20), 4 * (k // 20), 4, 4] for k in range(300)], np.float32)  # 4x4 boxes tiling 80x60
@@ -221,7 +221,7 @@ def test_cutouts_are_blended_by_their_alpha_and_hide_boxes():
 
 
 def test_cutout_options_are_checked_before_training(tiny_bundle, tmp_path):
-    from tracker.detector_train import train_detector
+    from tracker.build.detector_train import train_detector
     with pytest.raises(UserError, match="--cutouts .*no such folder"):
         train_detector(tiny_bundle.parent / "split", tiny_bundle, minutes=0.01, cutouts=tmp_path / "nope")
     with pytest.raises(UserError, match="--cutout-share .* needs --cutouts"):
@@ -230,14 +230,14 @@ def test_cutout_options_are_checked_before_training(tiny_bundle, tmp_path):
 
 def test_pasting_objects_without_occlusion_is_refused(tiny_bundle):
     pytest.importorskip("torch")
-    from tracker.detector_train import train_detector
+    from tracker.build.detector_train import train_detector
     with pytest.raises(UserError, match="--occlusion"):
         train_detector(tiny_bundle.parent / "split", tiny_bundle, minutes=0.01, paste_objects=0.5)
 
 
 @pytest.fixture(scope="module")
 def tiny_detector_bundle(tiny_bundle, tmp_path_factory):
-    from tracker.detector_train import train_detector
+    from tracker.build.detector_train import train_detector
     root = tmp_path_factory.mktemp("det") / "lmo"
     shutil.copytree(tiny_bundle, root)
     train_detector(tiny_bundle.parent / "split", root, minutes=0.02, width=8, batch=2, log=lambda *a: None)
@@ -245,27 +245,27 @@ def tiny_detector_bundle(tiny_bundle, tmp_path_factory):
 
 
 def test_a_bundle_with_a_detector_can_train_another(tiny_detector_bundle, tiny_bundle, tmp_path):
-    from tracker.bundle import open_bundle
-    from tracker.detector_train import train_detector
+    from tracker.core.bundle import open_bundle
+    from tracker.build.detector_train import train_detector
     root = tmp_path / "lmo"
     shutil.copytree(tiny_detector_bundle, root)
-    before = open_bundle(root).manifest["files"]["detector.onnx"]["sha256"]
+    before = open_bundle(root).manifest.files["detector.onnx"]["sha256"]
     train_detector(tiny_bundle.parent / "split", root, minutes=0.02, width=4, batch=2, log=lambda *a: None)
     after = open_bundle(root).manifest  # hashes verified: the new detector replaced the old one
-    assert after["detector"]["training"]["width"] == 4
-    assert after["files"]["detector.onnx"]["sha256"] != before
+    assert after.detector["training"]["width"] == 4
+    assert after.files["detector.onnx"]["sha256"] != before
 
 
 def test_a_detector_can_start_from_another_runs_weights(tiny_detector_bundle, tiny_bundle, tmp_path):
-    from tracker.bundle import open_bundle
-    from tracker.detector_train import train_detector
+    from tracker.core.bundle import open_bundle
+    from tracker.build.detector_train import train_detector
     src = next((tiny_detector_bundle.parent / "lmo.work").glob("detector_ckpt_*.pt"))
     root = tmp_path / "lmo"
     shutil.copytree(tiny_bundle, root)
     logs = []
     train_detector(tiny_bundle.parent / "split", root, minutes=0.01, width=8, batch=2, init_from=src, log=logs.append)
     assert any(str(l).startswith("started from the weights of") for l in logs)
-    assert open_bundle(root).manifest["detector"]["training"]["init_from"] == str(src)
+    assert open_bundle(root).manifest.detector["training"]["init_from"] == str(src)
     with pytest.raises(UserError, match="width 8 .* this run has width 4"):
         train_detector(tiny_bundle.parent / "split", tmp_path / "lmo", minutes=0.01, width=4, batch=2,
                        init_from=src, log=lambda *a: None)
@@ -279,20 +279,20 @@ def test_a_detector_can_start_from_a_bundles_exported_network(tiny_detector_bund
     """Weights read back from the ONNX graph (BatchNorms folded) give the exported network's
     output; the fine-tune keeps its BatchNorms frozen, and joined networks are refused."""
     pytest.importorskip("onnx")
-    from tracker.bundle import open_bundle
-    from tracker.detector_train import _init_weights, train_detector
-    from tracker.nets.detector import CenterNetLite
-    from tracker.train import _torch
+    from tracker.core.bundle import open_bundle
+    from tracker.build.detector_train import _init_weights, train_detector
+    from tracker.build.nets.detector import CenterNetLite
+    from tracker.build.train import _torch
     torch = _torch()
-    classes = open_bundle(tiny_detector_bundle).manifest["detector"]["classes"]
+    classes = open_bundle(tiny_detector_bundle).manifest.detector["classes"]
     sd, frozen = _init_weights(torch, tiny_detector_bundle, 8, classes)  # checks itself against onnxruntime
     assert frozen
     m = CenterNetLite(len(classes), 8)
     m.load_state_dict(sd)
     bns = [b for b in m.modules() if isinstance(b, torch.nn.BatchNorm2d)]
     assert bns and all(torch.all(b.running_mean == 0) and torch.all(b.weight == 1) for b in bns)
-    from tracker.detector_ensemble import _run
-    spec = DetectorSpec.from_dict(open_bundle(tiny_detector_bundle).manifest["detector"])
+    from tracker.runtime.detector import run_graph as _run
+    spec = DetectorSpec.from_dict(open_bundle(tiny_detector_bundle).manifest.detector)
     x = np.random.default_rng(1).uniform(-2, 2, (1, 3, spec.input_h, spec.input_w)).astype(np.float32)
     with torch.no_grad():
         y = m.eval()(torch.from_numpy(x)).numpy()
@@ -304,26 +304,26 @@ def test_a_detector_can_start_from_a_bundles_exported_network(tiny_detector_bund
     root = tmp_path / "lmo"
     shutil.copytree(tiny_bundle, root)
     seen = []
-    import tracker.nets.detector as nd
+    import tracker.build.nets.detector as nd
     freeze = nd.freeze_batchnorm
     monkeypatch.setattr(nd, "freeze_batchnorm", lambda model: (seen.append(1), freeze(model)))
     train_detector(tiny_bundle.parent / "split", root, minutes=0.01, width=8, batch=2, init_from=tiny_detector_bundle,
                    lr=1e-4, log=lambda *a: None)
-    d = open_bundle(root).manifest["detector"]["training"]
+    d = open_bundle(root).manifest.detector["training"]
     assert seen and d["frozen_batchnorm"] is True and d["init_from"] == str(tiny_detector_bundle)
     with pytest.raises(UserError, match=r"with --init-from a bundle \(its BatchNorms frozen\): rerun"):
         train_detector(tiny_bundle.parent / "split", root, minutes=0.02, width=8, batch=2, lr=1e-4, log=lambda *a: None)
     joined = tmp_path / "joined"
-    from tracker.detector_ensemble import join_detectors
+    from tracker.research.detector_ensemble import join_detectors
     join_detectors(tiny_detector_bundle, [], out_dir=joined, mirror="both", log=lambda *a: None)
     with pytest.raises(UserError, match="joined or quantised already; start from the bundle of one"):
         _init_weights(torch, joined, 8, classes)
 
 
 def test_amodal_targets_are_whole_silhouettes_clipped_to_the_image(tiny_bundle, tmp_path):
-    from tracker.detector import DetectorSpec
-    from tracker.detector_ensemble import join_detectors
-    from tracker.detector_train import load_detection_set, target_box, train_detector
+    from tracker.runtime.detector import DetectorSpec
+    from tracker.research.detector_ensemble import join_detectors
+    from tracker.build.detector_train import load_detection_set, target_box, train_detector
     info = {"bbox_visib": [10, 20, 30, 40], "bbox_obj": [-5, 15, 50, 60]}
     assert target_box(info, "visible", 640, 480) == [10, 20, 30, 40]
     assert target_box(info, "amodal", 40, 480) == [0, 15, 40, 60]
@@ -342,14 +342,14 @@ def test_amodal_targets_are_whole_silhouettes_clipped_to_the_image(tiny_bundle, 
     for d, kind in ((a_dir, "amodal"), (v_dir, "visible")):
         shutil.copytree(tiny_bundle, d)
         train_detector(split, d, minutes=0.01, width=4, batch=2, box_kind=kind, **quiet)
-    from tracker.bundle import open_bundle
-    assert open_bundle(a_dir).manifest["detector"]["boxes"] == "amodal"
+    from tracker.core.bundle import open_bundle
+    assert open_bundle(a_dir).manifest.detector["boxes"] == "amodal"
     with pytest.raises(UserError, match="differs from .* in boxes"):
         join_detectors(v_dir, [a_dir], out_dir=tmp_path / "j", **quiet)
 
 
 def test_a_run_resumes_only_with_its_own_options(tiny_detector_bundle, tiny_bundle, tmp_path):
-    from tracker.detector_train import train_detector
+    from tracker.build.detector_train import train_detector
     root = tmp_path / "lmo"
     shutil.copytree(tiny_detector_bundle, root)
     shutil.copytree(tiny_detector_bundle.parent / "lmo.work", tmp_path / "lmo.work")
@@ -372,16 +372,16 @@ def test_a_run_resumes_only_with_its_own_options(tiny_detector_bundle, tiny_bund
 
 
 def test_tiny_training_exports_and_loads(tiny_detector_bundle, lmo_dev):
-    from tracker.bundle import open_bundle
-    from tracker.detector import Detector
+    from tracker.core.bundle import open_bundle
+    from tracker.runtime.detector import Detector
     b = open_bundle(tiny_detector_bundle)
-    spec = b.manifest["detector"]
-    assert spec["classes"] == [o["id"] for o in b.objects]
+    spec = b.manifest.detector
+    assert spec["classes"] == [o.id for o in b.objects]
     assert spec["training"]["onnx_max_abs_diff"] <= 1e-4
     assert spec["training"]["steps"] >= 1
     det = Detector(b)
     frame = lmo_dev.read_rgb(lmo_dev.im_ids[0])
-    from tracker.detector import letterbox, normalise
+    from tracker.runtime.detector import letterbox, normalise
     x = normalise(letterbox(frame, spec["input_w"], spec["input_h"])[0][None], det.spec)
     maps = det.session.run(None, {det.input_name: x})[0]
     assert maps.shape == (1, len(spec["classes"]) + 4, spec["input_h"] // 8, spec["input_w"] // 8)
@@ -391,8 +391,8 @@ def test_tiny_training_exports_and_loads(tiny_detector_bundle, lmo_dev):
 
 
 def test_candidates_for_ap_extend_the_run_time_detections(tiny_detector_bundle, lmo_dev):
-    from tracker.bundle import open_bundle
-    from tracker.detector import CANDIDATE_PER_CLASS, CANDIDATE_SCORE, Detector
+    from tracker.core.bundle import open_bundle
+    from tracker.runtime.detector import CANDIDATE_PER_CLASS, CANDIDATE_SCORE, Detector
     det = Detector(open_bundle(tiny_detector_bundle))
     det.spec.score_thresh = 0.5  # a tiny network's scores are low: few or no run-time detections
     frame = lmo_dev.read_rgb(lmo_dev.im_ids[0])
@@ -406,7 +406,7 @@ def test_candidates_for_ap_extend_the_run_time_detections(tiny_detector_bundle, 
 
 
 def test_eval_with_the_detector_reports_coco_ap_and_the_operating_point(tiny_detector_bundle, data_dir, tmp_path):
-    from tracker.evaluate import evaluate
+    from tracker.evaluation.evaluate import evaluate
     m = evaluate(tiny_detector_bundle, data_dir / "lmo" / "dev", tmp_path / "m.json", boxes="detector",
                  max_frames=2, progress=False)
     d = json.loads((tmp_path / "m.json").read_text())["detection"]
@@ -419,8 +419,8 @@ def test_eval_with_the_detector_reports_coco_ap_and_the_operating_point(tiny_det
 
 
 def test_detector_classes_must_match_bundle(tiny_detector_bundle, tmp_path):
-    from tracker.bundle import open_bundle
-    from tracker.detector import Detector
+    from tracker.core.bundle import open_bundle
+    from tracker.runtime.detector import Detector
     bad = tmp_path / "lmo"
     shutil.copytree(tiny_detector_bundle, bad)
     m = json.loads((bad / "manifest.json").read_text())
@@ -435,8 +435,8 @@ def test_detector_classes_must_match_bundle(tiny_detector_bundle, tmp_path):
 
 
 def test_box_schedule_runs_detector_every_n():
-    from tracker.estimator import PoseEstimate
-    from tracker.loop import BoxSchedule
+    from tracker.runtime.estimator import PoseEstimate
+    from tracker.runtime.loop import BoxSchedule
     calls = []
 
     def fake_detector(rgb):
@@ -466,8 +466,8 @@ def test_box_schedule_runs_detector_every_n():
 
 
 def test_box_schedule_counts_only_the_tracked_objects():
-    from tracker.estimator import PoseEstimate
-    from tracker.loop import BoxSchedule
+    from tracker.runtime.estimator import PoseEstimate
+    from tracker.runtime.loop import BoxSchedule
 
     def two_objects(rgb):
         return [Detection(1, np.array([100, 100, 50, 50.]), 0.9), Detection(5, np.array([300, 100, 50, 50.]), 0.8)]
@@ -483,9 +483,9 @@ def test_box_schedule_counts_only_the_tracked_objects():
 
 
 def test_loop_with_the_detector_on_the_bundled_recording(tiny_detector_bundle, tmp_path):
-    from tracker.bop import read_results
-    from tracker.loop import TrackConfig, run_track
-    from tracker.paths import DEMO_RECORDING
+    from tracker.core.bop import read_results
+    from tracker.runtime.loop import TrackConfig, run_track
+    from tracker.core.paths import DEMO_RECORDING
     out = tmp_path / "run"
     s = run_track(TrackConfig(str(DEMO_RECORDING), str(tiny_detector_bundle), out, rerun="off", max_frames=3,
                               boxes="detector", detect_every=2, smooth=0.5), log=lambda m: None)
@@ -499,18 +499,18 @@ def test_join_detectors_averages_the_networks_and_quantises_them(tiny_detector_b
                                                                  monkeypatch):
     pytest.importorskip("onnx")
     import onnx
-    from tracker.bundle import open_bundle, update_manifest
-    from tracker.detector import Detector, letterbox, normalise
-    from tracker.detector_ensemble import join_detectors
-    from tracker.detector_train import train_detector
+    from tracker.core.bundle import open_bundle, update_manifest
+    from tracker.runtime.detector import Detector, letterbox, normalise
+    from tracker.research.detector_ensemble import join_detectors
+    from tracker.build.detector_train import train_detector
     quiet = dict(log=lambda *a: None)
     split = tiny_bundle.parent / "split"
     second = tmp_path / "second"
     shutil.copytree(tiny_bundle, second)
     train_detector(split, second, minutes=0.01, width=4, batch=2, seed=1, **quiet)
     m = join_detectors(tiny_detector_bundle, [second], out_dir=tmp_path / "joined", **quiet)
-    ens = m["detector"]["ensemble"]
-    a_thresh = open_bundle(tiny_detector_bundle).manifest["detector"]["score_thresh"]
+    ens = m.detector["ensemble"]
+    a_thresh = open_bundle(tiny_detector_bundle).manifest.detector["score_thresh"]
     assert ens["members"] == 2 and ens["from"][1]["bundle"] == str(second)
     frame = lmo_dev.read_rgb(lmo_dev.im_ids[0])
 
@@ -528,18 +528,18 @@ def test_join_detectors_averages_the_networks_and_quantises_them(tiny_detector_b
 
     q = join_detectors(tiny_detector_bundle, [second], out_dir=tmp_path / "int8", int8_data=split,
                        calibration_images=3, score_thresh=0.15, **quiet)
-    assert q["detector"]["int8"]["calibration_images"] == 3
-    assert q["detector"]["score_thresh"] == 0.15 and m["detector"]["score_thresh"] == a_thresh
+    assert q.detector["int8"]["calibration_images"] == 3
+    assert q.detector["score_thresh"] == 0.15 and m.detector["score_thresh"] == a_thresh
     ops = {n.op_type for n in onnx.load(str(tmp_path / "int8" / "detector.onnx")).graph.node}
     assert {"QuantizeLinear", "DequantizeLinear", "Mean"} <= ops
-    C = len(q["detector"]["classes"])
+    C = len(q.detector["classes"])
     # on the images it was calibrated on (min-max ranges: nothing clipped) int8 follows the float graph;
     # a real frame can reach past the ranges of three renders of a network trained for a second
-    from tracker.detector_ensemble import calibration_inputs
+    from tracker.research.detector_ensemble import calibration_inputs
     x_cal = calibration_inputs(split, Detector(open_bundle(tmp_path / "int8")).spec, 3)
     for x in x_cal[:, None]:
         assert np.abs(maps_of(tmp_path / "int8", x)[0, :C] - maps_of(tmp_path / "joined", x)[0, :C]).max() < 0.1
-    assert all(d.obj_id in q["detector"]["classes"] for d in Detector(open_bundle(tmp_path / "int8"))(frame))
+    assert all(d.obj_id in q.detector["classes"] for d in Detector(open_bundle(tmp_path / "int8"))(frame))
 
     with pytest.raises(UserError, match="not a folder"):
         join_detectors(tiny_detector_bundle, [second], out_dir=tmp_path / "n", int8_data=tmp_path / "none", **quiet)
@@ -554,8 +554,8 @@ def test_join_detectors_averages_the_networks_and_quantises_them(tiny_detector_b
 
     # one network and its mirror image: the joined output is mirror-symmetric (x offsets turned)
     mm = join_detectors(tiny_detector_bundle, [], out_dir=tmp_path / "mirror", mirror="both", **quiet)
-    assert mm["detector"]["ensemble"]["mirror"] == "both" and mm["detector"]["ensemble"]["members"] == 1
-    from tracker.detector_ensemble import mirror_fix
+    assert mm.detector["ensemble"]["mirror"] == "both" and mm.detector["ensemble"]["members"] == 1
+    from tracker.research.detector_ensemble import mirror_fix
     d = Detector(open_bundle(tmp_path / "mirror"))
     x = normalise(letterbox(frame, d.spec.input_w, d.spec.input_h, d.spec.pad_value)[0][None], d.spec)
     scale, shift = mirror_fix(a.shape[1])
@@ -572,13 +572,13 @@ def test_join_detectors_averages_the_networks_and_quantises_them(tiny_detector_b
         join_detectors(tiny_detector_bundle, [second], out_dir=tmp_path / "m", mirror="sideways", **quiet)
     other = tmp_path / "other"
     shutil.copytree(second, other)
-    update_manifest(other, lambda man: man["detector"].update(input_w=256))
+    update_manifest(other, lambda man: man.detector.update(input_w=256))
     with pytest.raises(UserError, match="input_w"):
         join_detectors(tiny_detector_bundle, [other], out_dir=tmp_path / "bad", **quiet)
 
     # Ctrl-C before the manifest is re-hashed: an in-place join leaves the bundle as it was
-    from tracker import detector_ensemble
-    from tracker.bundle import sha256
+    from tracker.research import detector_ensemble
+    from tracker.core.bundle import sha256
     inplace = tmp_path / "inplace" / "b"
     shutil.copytree(tiny_detector_bundle, inplace)
     before = sha256(inplace / "detector.onnx")
@@ -594,13 +594,13 @@ def test_join_detectors_averages_the_networks_and_quantises_them(tiny_detector_b
 
 def test_tune_heads_picks_the_trees_weight_on_renders(tiny_bundle, tmp_path):
     from tests.conftest import REPO
-    from tracker.bundle import open_bundle, sha256
-    from tracker.tune_heads import tune_trees_weight
+    from tracker.core.bundle import open_bundle, sha256
+    from tracker.research.tune_heads import tune_trees_weight
     split = tiny_bundle.parent / "split"
     src = REPO / "models" / "lmo"
     before = sha256(src / "manifest.json")
     m = tune_trees_weight(src, split, weights=(1.0, 0.0), out_dir=tmp_path / "tuned", max_frames=2, log=lambda *a: None)
-    tw = m["heads"]["trees_weight"]
+    tw = m.heads["trees_weight"]
     table = tw["by_weight"]
     assert set(table) == {"0.0", "1.0"} and table["0.0"]["instances"] > 0
     assert table["0.0"]["te_median_mm"] != table["1.0"]["te_median_mm"]  # the weight reaches the poses
@@ -616,7 +616,7 @@ def test_tune_heads_picks_the_trees_weight_on_renders(tiny_bundle, tmp_path):
 
 def test_ema_averages_the_weights_and_is_what_is_exported(tiny_bundle, tmp_path):
     torch = pytest.importorskip("torch")
-    from tracker.detector_train import ema_update, train_detector
+    from tracker.build.detector_train import ema_update, train_detector
     net = torch.nn.Sequential(torch.nn.Conv2d(1, 1, 1), torch.nn.BatchNorm2d(1))
     avg = {k: v.float().clone() for k, v in net.state_dict().items() if v.is_floating_point()}
     assert "1.num_batches_tracked" not in avg  # integer counters are not averaged

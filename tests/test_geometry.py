@@ -6,7 +6,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 from scipy.spatial.transform import Rotation
 
-from tracker import geometry as G
+from tracker.core import geometry as G
 
 finite = st.floats(-1.0, 1.0, allow_nan=False)
 quat = arrays(np.float64, 4, elements=finite).filter(lambda q: np.linalg.norm(q) > 1e-3)

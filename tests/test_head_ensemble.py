@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from tracker.geometry import mean_pose, rotation_error_deg
-from tracker.regressors import HeadEnsemble
+from tracker.core.geometry import mean_pose, rotation_error_deg
+from tracker.runtime.heads import HeadEnsemble
 
 
 class FixedHead:
@@ -40,13 +40,14 @@ def test_ensembles_flatten_and_refuse_heads_of_other_objects():
     a, b = FixedHead(np.eye(3), [0, 0, 500]), FixedHead(np.eye(3), [0, 0, 2000])
     ens = HeadEnsemble([HeadEnsemble([a, b], {}), a], {})
     assert len(ens.members) == 3
-    from tracker.errors import UserError
+    from tracker.core.errors import UserError
     with pytest.raises(UserError, match="cannot be averaged"):
         HeadEnsemble([a, FixedHead(np.eye(3), [0, 0, 1], obj_ids=(1,))], {})
 
 
 def test_stacked_trees_and_mlps_give_each_members_prediction():
-    from tracker.regressors import BoostedTrees, NumpyMLP, StackedMLP, StackedTrees
+    from tracker.build.fit_heads import BoostedTrees, NumpyMLP
+    from tracker.runtime.heads import StackedMLP, StackedTrees
     rng = np.random.default_rng(1)
     X = rng.normal(size=(800, 5))
     forests = [BoostedTrees(max_iter=n, max_leaf_nodes=leaves, seed=s).fit(X, np.sin(X[:, 0] * s) + X[:, s])
@@ -75,14 +76,14 @@ def test_stacked_trees_and_mlps_give_each_members_prediction():
 
 def test_the_bundled_averaged_head_stacked_equals_member_by_member():
     from tests.conftest import REPO
-    from tracker.regressors import HeadEnsemble
-    from tracker.estimator import PoseEstimator
+    from tracker.runtime.heads import HeadEnsemble
+    from tracker.runtime.estimator import PoseEstimator
     est = PoseEstimator(REPO / "models" / "lmo")
     head = est.head
     assert isinstance(head, HeadEnsemble) and head.stacked() is not None
     rng = np.random.default_rng(0)
     ids = est.obj_ids * 2
-    mu = rng.normal(size=(len(ids), est.bundle.manifest["latent_size"])).astype(np.float32)
+    mu = rng.normal(size=(len(ids), est.bundle.manifest.latent_size)).astype(np.float32)
     boxes = np.column_stack([rng.uniform(0, 500, len(ids)), rng.uniform(0, 350, len(ids)),
                              rng.uniform(30, 140, len(ids)), rng.uniform(30, 140, len(ids))])
     K = np.array([[572.4, 0, 325.3], [0, 573.6, 242.0], [0, 0, 1]])
@@ -106,21 +107,63 @@ def test_the_bundled_averaged_head_stacked_equals_member_by_member():
 
 
 
-def test_mlp_weights_are_stored_in_half_precision_and_evaluated_in_float32():
-    import pickle
-
-    from tracker.regressors import NumpyMLP
+def test_mlp_weights_are_stored_in_half_precision_and_evaluated_in_float32(tmp_path):
+    from tracker.build.fit_heads import NumpyMLP
+    from tracker.runtime.heads import MLP, PoseHead, load_head, save_head
     r = np.random.default_rng(0)
-    m = NumpyMLP(hidden=(32,))
-    m.mean_, m.scale_ = np.zeros(5, np.float32), np.ones(5, np.float32)
-    m.layers_ = [(r.normal(size=(5, 32)).astype(np.float32), r.normal(size=32).astype(np.float32)),
-                 (r.normal(size=(32, 3)).astype(np.float32), r.normal(size=3).astype(np.float32))]
-    raw = pickle.dumps(m)
-    assert pickle.loads(raw).layers_[0][0].dtype == np.float32
-    assert all(W.dtype == np.float32 for W, _ in m.layers_)  # pickling leaves the fitted object as it was
-    small = pickle.loads(raw)
+
+    def mlp(shapes):
+        m = NumpyMLP(hidden=(32,))
+        m.mean_, m.scale_ = np.zeros(shapes[0][0], np.float32), np.ones(shapes[0][0], np.float32)
+        m.layers_ = [(r.normal(size=s).astype(np.float32), r.normal(size=s[1]).astype(np.float32)) for s in shapes]
+        return m
+    m = mlp([(5, 32), (32, 3)])
+    head = PoseHead([1], m, m, m)
+    save_head(head, tmp_path / "h.json", tmp_path / "h.npz")
+    assert all(W.dtype == np.float32 for W, _ in m.layers_)  # storing leaves the fitted object as it was
+    small = load_head(tmp_path / "h.json", tmp_path / "h.npz").rotation
+    assert type(small) is MLP and small.layers_[0][0].dtype == np.float32
     assert np.array_equal(small.layers_[0][0], m.layers_[0][0].astype(np.float16).astype(np.float32))
     X = r.normal(size=(20, 5)).astype(np.float32)
     assert np.allclose(small.predict(X), m.predict(X), rtol=1e-2, atol=1e-2)
-    m.layers_ = [(np.zeros((5, 600), np.float32), np.zeros(600, np.float32))]
-    assert len(pickle.dumps(m)) < 0.6 * (5 * 600 + 600) * 4  # about half the bytes of float32 weights and biases
+    big = mlp([(5, 600), (600, 3)])
+    big.layers_[0] = (np.zeros((5, 600), np.float32), np.zeros(600, np.float32))
+    spec, arrays = big.to_arrays()
+    assert arrays["W0"].nbytes + arrays["b0"].nbytes == (5 * 600 + 600) * 2  # half the bytes of float32
+
+
+def test_every_regressor_kind_survives_storage_exactly(tmp_path):
+    """Each kind the bundle stores (MLP, KNN, trees, codebook) predicts the same after a round trip
+    through JSON + npz, in an ensemble with symmetries."""
+    from tracker.build.fit_heads import BoostedTrees, KNNRegressor
+    from tracker.runtime.heads import Codebook, PoseHead, load_codebook, load_head, save_codebook, save_head
+    r = np.random.default_rng(1)
+    mu, ids = r.normal(size=(40, 8)).astype(np.float32), r.choice([3, 7], 40)
+    boxes = np.c_[r.uniform(50, 300, (40, 2)), r.uniform(20, 90, (40, 2))]
+    K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
+    n_in = 8 + 2
+
+    def mlp(out):
+        from tracker.build.fit_heads import NumpyMLP
+        m = NumpyMLP(loss="l1_rotation" if out == 6 else "l1")
+        m.mean_, m.scale_ = r.normal(size=n_in).astype(np.float32), np.ones(n_in, np.float32)
+        m.layers_ = [(r.normal(size=(n_in, 16)).astype(np.float16).astype(np.float32), np.zeros(16, np.float32)),
+                     (r.normal(size=(16, out)).astype(np.float16).astype(np.float32), np.zeros(out, np.float32))]
+        return m
+    cen = mlp(2)
+    cen.mean_, cen.scale_ = np.zeros(n_in + 4, np.float32), np.ones(n_in + 4, np.float32)
+    cen.layers_[0] = (r.normal(size=(n_in + 4, 16)).astype(np.float16).astype(np.float32), np.zeros(16, np.float32))
+    knn = KNNRegressor(k=3).fit(r.normal(size=(50, n_in + 2)), r.normal(size=50))
+    trees = BoostedTrees(max_iter=5, seed=0).fit(r.normal(size=(60, 6 + 2 + 2)), r.normal(size=60))
+    heads = [PoseHead([3, 7], mlp(6), cen, knn, distance_by_rotation=trees) for _ in range(2)]
+    flip = np.diag([-1.0, -1.0, 1.0])
+    ens = HeadEnsemble(heads, {7: np.stack([np.eye(3), flip])})
+    save_head(ens, tmp_path / "h.json", tmp_path / "h.npz")
+    back = load_head(tmp_path / "h.json", tmp_path / "h.npz")
+    for w in (0.0, 0.5):
+        for a, b in zip(ens.predict(mu, ids, boxes, K, trees_weight=w), back.predict(mu, ids, boxes, K, trees_weight=w)):
+            assert np.array_equal(a, b)
+    cb = Codebook().fit(mu, ids, r.normal(size=(40, 3, 3)), r.uniform(1, 2, 40))
+    save_codebook(cb, tmp_path / "cb.npz")
+    for a, b in zip(cb.predict(mu[:5], ids[:5]), load_codebook(tmp_path / "cb.npz").predict(mu[:5], ids[:5])):
+        assert np.array_equal(a, b)

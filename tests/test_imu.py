@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from tracker import imu
-from tracker.bop import Estimate, write_results
-from tracker.errors import UserError
-from tracker.geometry import rotation_error_deg
+from tracker.evaluation import imu
+from tracker.core.bop import Estimate, write_results
+from tracker.core.errors import UserError
+from tracker.core.geometry import rotation_error_deg
 
 FPS = 30.0
 OFFSET = 0.137  # IMU clock minus camera clock

@@ -8,13 +8,13 @@ import pytest
 
 pytest.importorskip("torch")
 
-from tracker.bop import load_scene  # noqa: E402
-from tracker.bundle import open_bundle  # noqa: E402
-from tracker.errors import UserError  # noqa: E402
-from tracker.estimator import Detection, PoseEstimator  # noqa: E402
-from tracker.geometry import project, ray_rotation, rotation_error_deg, scale_intrinsics  # noqa: E402
-from tracker.synth.engine import SynthConfig, generate  # noqa: E402
-from tracker.train import train_bundle  # noqa: E402
+from tracker.core.bop import load_scene  # noqa: E402
+from tracker.core.bundle import open_bundle  # noqa: E402
+from tracker.core.errors import UserError  # noqa: E402
+from tracker.runtime.estimator import Detection, PoseEstimator  # noqa: E402
+from tracker.core.geometry import project, ray_rotation, rotation_error_deg, scale_intrinsics  # noqa: E402
+from tracker.build.synth.engine import SynthConfig, generate  # noqa: E402
+from tracker.build.train import train_bundle  # noqa: E402
 
 OBJS = [1, 9]
 
@@ -44,10 +44,10 @@ def bundles(tiny_split, tmp_path_factory):
 @pytest.mark.parametrize("method", ["dalsr", "cvml", "cvam", "cvam-resnet"])
 def test_every_method_trains_exports_and_runs(bundles, tiny_split, method):
     manifest, path = bundles[method]
-    assert manifest["method"] == method.split("-")[0] and manifest["pose_prior"] == "table"
-    assert manifest["encoder"] == ("resnet" if method.endswith("resnet") else "plain")
-    assert manifest["training"]["onnx_max_abs_diff"] <= 1e-4
-    assert {o["id"] for o in manifest["objects"]} == set(OBJS)
+    assert manifest.method == method.split("-")[0] and manifest.pose_prior == "table"
+    assert manifest.encoder == ("resnet" if method.endswith("resnet") else "plain")
+    assert manifest.training["onnx_max_abs_diff"] <= 1e-4
+    assert {o.id for o in manifest.objects} == set(OBJS)
     est = PoseEstimator(path)
     scene = load_scene(tiny_split / "000000", require_gt=True)
     img = scene.read_rgb(0)
@@ -77,7 +77,7 @@ def test_tampered_or_missing_files_are_refused(bundles, tmp_path):
     _, src = bundles["cvam"]
     b = tmp_path / "b"
     shutil.copytree(src, b)
-    with open(b / "pose_head.joblib", "ab") as f:
+    with open(b / "pose_head.npz", "ab") as f:
         f.write(b"\0")
     with pytest.raises(UserError, match="SHA-256"):
         open_bundle(b)
@@ -89,7 +89,7 @@ def test_tampered_or_missing_files_are_refused(bundles, tmp_path):
     shutil.rmtree(b)
     shutil.copytree(src, b)
     m = json.loads((b / "manifest.json").read_text())
-    m["artefacts"]["pose_head"] = "../../evil.joblib"
+    m["artefacts"]["pose_head"] = "../../evil.json"
     (b / "manifest.json").write_text(json.dumps(m))
     with pytest.raises(UserError, match="not hashed"):
         PoseEstimator(b)
@@ -164,7 +164,7 @@ def test_training_can_start_from_another_runs_weights(tiny_split, tmp_path):
     assert any(str(l).startswith("started from the weights of") for l in logs)
     m = json.loads((tmp_path / "b" / "manifest.json").read_text())
     assert m["training"]["init_from"] == str(src)
-    from tracker.nets.autoencoder import AutoEncoder
+    from tracker.build.nets.autoencoder import AutoEncoder
     a = torch.load(src, weights_only=True)
     b = torch.load(tmp_path / "b.work" / "ae_checkpoint.pt", weights_only=True)
     assert b["hist"]["epoch"][0] == 0 and len(b["hist"]["epoch"]) == b["epoch"] + 1  # a new history
@@ -191,7 +191,7 @@ def _train_from(split, out, method, init_from):
 def test_ablate_tables_on_a_tiny_bundle(tiny_bundle, tmp_path):
     import json
 
-    from tracker.ablate import ablate
+    from tracker.research.ablate import ablate
     res = ablate(tiny_bundle, tiny_bundle.parent / "split", tmp_path / "ablate.json", mlp_minutes=0.01,
                  log=lambda *a: None)
     assert json.loads((tmp_path / "ablate.json").read_text())["table_4_1"] == res["table_4_1"]
@@ -208,8 +208,8 @@ def test_ablate_tables_on_a_tiny_bundle(tiny_bundle, tmp_path):
 
 
 def test_report_on_a_tiny_bundle(tiny_bundle, tmp_path):
-    from tracker.report import build_report
-    from tracker.paths import DEMO_RECORDING
+    from tracker.evaluation.report import build_report
+    from tracker.core.paths import DEMO_RECORDING
     path = build_report(tiny_bundle, DEMO_RECORDING, tmp_path / "rep", max_frames=3, log=lambda *a: None)
     md = path.read_text()
     for head in ("Table 5.6", "Table 5.7", "Figure 5.3", "Tables 4.1 and 4.2", "t-SNE"):
@@ -221,8 +221,8 @@ def test_report_on_a_tiny_bundle(tiny_bundle, tmp_path):
 
 
 def test_report_reuses_evaluations_only_of_the_same_bundle(tiny_bundle, tmp_path):
-    from tracker.report import build_report
-    from tracker.paths import DEMO_RECORDING
+    from tracker.evaluation.report import build_report
+    from tracker.core.paths import DEMO_RECORDING
     out = tmp_path / "rep"
     build_report(tiny_bundle, DEMO_RECORDING, out, max_frames=1, log=lambda *a: None)
     p = out / "eval_gt_regression.json"
@@ -238,7 +238,7 @@ def test_report_reuses_evaluations_only_of_the_same_bundle(tiny_bundle, tmp_path
 
 
 def test_crop_caches_are_named_for_their_split(tmp_path, monkeypatch):
-    from tracker.crops import crops_cache_path
+    from tracker.build.crops import crops_cache_path
     (tmp_path / "a").mkdir()
     (tmp_path / "b").mkdir()
     monkeypatch.chdir(tmp_path)
@@ -253,7 +253,7 @@ def test_crop_caches_are_named_for_their_split(tmp_path, monkeypatch):
 def test_distance_knn_equals_scikit_learns_brute_force():
     from sklearn.neighbors import KNeighborsRegressor
 
-    from tracker.regressors import DistanceKNN
+    from tracker.build.fit_heads import KNNRegressor as DistanceKNN
     rng = np.random.default_rng(0)
     X, y = rng.normal(size=(2000, 12)), rng.normal(size=2000)
     m = DistanceKNN(k=6, box_weight=2.5).fit(X, y)
@@ -266,7 +266,7 @@ def test_distance_knn_equals_scikit_learns_brute_force():
 
 def _distance_case(X, y):
     """Validation arguments of choose_distance for crops at the image centre with log(Tz size) = y."""
-    from tracker.geometry import translation_from_centre
+    from tracker.core.geometry import translation_from_centre
     K = np.array([[572.4, 0, 325.3], [0, 573.6, 242.0], [0, 0, 1]])
     size = np.full(len(y), 0.1)
     centre = np.tile([320.0, 240.0], (len(y), 1))
@@ -275,9 +275,9 @@ def _distance_case(X, y):
 
 
 def test_choose_distance_keeps_the_head_with_the_lower_validation_error(monkeypatch):
-    import tracker.train
-    from tracker.regressors import DistanceKNN, NumpyMLP
-    from tracker.train import choose_distance
+    import tracker.build.train
+    from tracker.build.fit_heads import KNNRegressor as DistanceKNN, NumpyMLP
+    from tracker.build.train import choose_distance
     rng = np.random.default_rng(0)
     X = rng.normal(size=(1500, 20)).astype(np.float32)
     w = rng.normal(size=20) * 0.05
@@ -294,7 +294,7 @@ def test_choose_distance_keeps_the_head_with_the_lower_validation_error(monkeypa
     assert isinstance(m, DistanceKNN) and info["head"] == "knn" and info["val_te_median_mm"] < 1e-3
     assert info["knn"]["rows"] == 1200 and len(m.X_) == 1200
     # a large training set: the KNN keeps a random subset, so the bundle stays small
-    monkeypatch.setattr(tracker.train, "KNN_MAX_ROWS", 500)
+    monkeypatch.setattr(tracker.build.train, "KNN_MAX_ROWS", 500)
     m, info = choose_distance(X[tr], y2[tr], X[tr[:300]], y2[tr[:300]], *_distance_case(X[tr[:300]], y2[tr[:300]]),
                               reg_minutes=0.05, log=lambda *a: None)
     assert info["knn"]["rows"] == 500 and info["knn"]["val_te_median_mm"] > 1e-3
@@ -311,8 +311,8 @@ class _Const:
 def test_pose_head_turns_ray_frame_rotations_into_the_camera_frame():
     from scipy.spatial.transform import Rotation
 
-    from tracker.geometry import box_offset_of_centre, ray_rotation
-    from tracker.regressors import PoseHead
+    from tracker.core.geometry import box_offset_of_centre, ray_rotation
+    from tracker.runtime.heads import PoseHead
     K = np.array([[572.4, 0, 325.3], [0, 573.6, 242.0], [0, 0, 1]])
     R_a = Rotation.from_euler("xyz", [20, -35, 110], degrees=True).as_matrix()
     boxes = np.array([[300.0, 220, 50, 45], [10, 15, 60, 60], [560, 400, 70, 70]])
@@ -344,8 +344,8 @@ class _Recording(_Const):
 def test_distance_from_rotation_is_averaged_with_the_latent_distance_in_log_space():
     from scipy.spatial.transform import Rotation
 
-    from tracker.geometry import rot6d_from_matrix
-    from tracker.regressors import PoseHead, apparent_size
+    from tracker.core.geometry import rot6d_from_matrix
+    from tracker.runtime.heads import PoseHead, apparent_size
     K = np.array([[572.4, 0, 325.3], [0, 573.6, 242.0], [0, 0, 1]])
     R_a = Rotation.from_euler("xyz", [20, -35, 110], degrees=True).as_matrix()
     boxes = np.array([[300.0, 220, 50, 45], [10, 15, 60, 60]])
@@ -369,7 +369,7 @@ def test_distance_from_rotation_is_averaged_with_the_latent_distance_in_log_spac
 def test_boosted_trees_predict_as_scikit_learn_does():
     from sklearn.ensemble import HistGradientBoostingRegressor
 
-    from tracker.regressors import BoostedTrees
+    from tracker.build.fit_heads import BoostedTrees
     rng = np.random.default_rng(0)
     X = rng.normal(size=(2000, 6))
     y = np.sin(2 * X[:, 0]) + X[:, 1] * X[:, 2] + 0.1 * rng.normal(size=2000)
@@ -384,9 +384,9 @@ def test_boosted_trees_predict_as_scikit_learn_does():
 
 
 def test_distance_from_rotation_is_kept_only_when_it_helps_on_validation():
-    from tracker.geometry import project
-    from tracker.regressors import apparent_size
-    from tracker.train import choose_distance_by_rotation
+    from tracker.core.geometry import project
+    from tracker.runtime.heads import apparent_size
+    from tracker.build.train import choose_distance_by_rotation
     from scipy.spatial.transform import Rotation
     rng = np.random.default_rng(0)
     n = 600
@@ -412,22 +412,22 @@ def test_distance_from_rotation_is_kept_only_when_it_helps_on_validation():
 def test_refit_heads_can_keep_the_regressors_and_add_the_distance_from_rotation(tiny_bundle, tmp_path):
     import pickle
 
-    from tracker.train import refit_heads
+    from tracker.build.train import refit_heads
     m = refit_heads(tiny_bundle, tiny_bundle.parent / "split", out_dir=tmp_path / "kept", keep_regressors=True,
                     log=lambda *a: None)
-    assert m["heads"]["kept_regressors"] and set(m["heads"]["distance_by_rotation"]) >= {"used"}
+    assert m.heads["kept_regressors"] and set(m.heads["distance_by_rotation"]) >= {"used"}
     src, kept = PoseEstimator(tiny_bundle), PoseEstimator(tmp_path / "kept")
     for name in ("rotation", "centre", "distance"):  # the very same regressors
         a, b = getattr(src.head, name), getattr(kept.head, name)
         assert type(a) is type(b) and pickle.dumps(a, protocol=4) == pickle.dumps(b, protocol=4)
-    assert (kept.head.distance_by_rotation is not None) == m["heads"]["distance_by_rotation"]["used"]
+    assert (kept.head.distance_by_rotation is not None) == m.heads["distance_by_rotation"]["used"]
     assert len(list((tiny_bundle.parent / "lmo.work").glob("codes_*.npy"))) == 2  # cached for the next refit
 
 
 def test_refit_heads_with_wider_box_noise_cuts_crops_on_wider_boxes(tiny_bundle, tmp_path):
-    from tracker.bundle import read_verified_manifest
-    from tracker.crops import JITTER_SCALE, bundle_training_crops
-    from tracker.train import refit_heads
+    from tracker.core.bundle import read_verified_manifest
+    from tracker.build.crops import JITTER_SCALE, bundle_training_crops
+    from tracker.build.train import refit_heads
     split = tiny_bundle.parent / "split"
     m = read_verified_manifest(tiny_bundle)
     exact = bundle_training_crops(tiny_bundle, m, split, jitter=False, log=lambda *a: None)
@@ -438,35 +438,34 @@ def test_refit_heads_with_wider_box_noise_cuts_crops_on_wider_boxes(tiny_bundle,
     assert spread[0.3] > 2 * spread[JITTER_SCALE], spread
     m = refit_heads(tiny_bundle, split, out_dir=tmp_path / "wide", reg_minutes=0.01, jitter_scale=0.3,
                     log=lambda *a: None)
-    assert m["heads"]["jitter_scale"] == 0.3
+    assert m.heads["jitter_scale"] == 0.3
     assert any("scale0.3" in p.name for p in (tiny_bundle.parent / "lmo.work").glob("codes_*.npy"))
 
 
 def test_refit_heads_keeps_the_encoder_and_writes_a_verified_bundle(tiny_bundle, tmp_path):
-    from tracker.bundle import sha256
-    from tracker.train import refit_heads
+    from tracker.core.bundle import sha256
+    from tracker.build.train import refit_heads
     before = {p.name: sha256(p) for p in tiny_bundle.iterdir() if p.is_file()}
     m = refit_heads(tiny_bundle, tiny_bundle.parent / "split", out_dir=tmp_path / "refit", reg_minutes=0.01,
                     log=lambda *a: None)
     assert {p.name: sha256(p) for p in tiny_bundle.iterdir() if p.is_file()} == before  # the source is untouched
-    assert m["heads"]["rotation_frame"] == "ray" and m["name"] == "refit"
-    assert m["files"]["encoder.onnx"]["sha256"] == before["encoder.onnx"]
+    assert m.heads["rotation_frame"] == "ray" and m.name == "refit"
+    assert m.files["encoder.onnx"]["sha256"] == before["encoder.onnx"]
     est = PoseEstimator(tmp_path / "refit")  # hashes verified on load
-    assert est.head.rotation_frame == "ray" and m["heads"]["jitter_scale"] == 0.08
+    assert est.head.rotation_frame == "ray" and m.heads["jitter_scale"] == 0.08
     with pytest.raises(UserError, match="synth_config"):
         refit_heads(tiny_bundle, tmp_path, out_dir=tmp_path / "x", log=lambda *a: None)
 
 
 def test_refit_heads_with_an_epoch_budget_is_reproducible(tiny_bundle, tmp_path):
-    from tracker.train import refit_heads
+    from tracker.build.train import refit_heads
     split = tiny_bundle.parent / "split"
     poses = []
     for run in ("a", "b", "c"):
         m = refit_heads(tiny_bundle, split, out_dir=tmp_path / run, reg_epochs=3, seed=0 if run != "c" else 1,
                         log=lambda *a: None)
-        assert m["heads"]["reg_epochs"] == 3 and m["heads"]["reg_minutes"] is None
+        assert m.heads["reg_epochs"] == 3 and m.heads["reg_minutes"] is None
         est = PoseEstimator(tmp_path / run)
-        assert est.head.rotation.epochs == 3 and est.head.rotation.minutes == float("inf")
         scene = load_scene(split / "000000")
         im_id = sorted(scene.gt)[0]
         dets = [Detection(g.obj_id, np.asarray(g.info["bbox_visib"], float)) for g in scene.gt[im_id]
@@ -477,15 +476,16 @@ def test_refit_heads_with_an_epoch_budget_is_reproducible(tiny_bundle, tmp_path)
 
 
 def test_join_heads_averages_refitted_heads_and_refuses_another_encoder(tiny_bundle, tmp_path):
-    from tracker.bundle import write_manifest
-    from tracker.geometry import mean_pose
-    from tracker.head_ensemble import join_heads
-    from tracker.regressors import HeadEnsemble
-    from tracker.train import refit_heads
+    from tracker.core.bundle import write_manifest
+    from tracker.core.manifest import Manifest
+    from tracker.core.geometry import mean_pose
+    from tracker.research.head_ensemble import join_heads
+    from tracker.runtime.heads import HeadEnsemble
+    from tracker.build.train import refit_heads
     split = tiny_bundle.parent / "split"
     refit_heads(tiny_bundle, split, out_dir=tmp_path / "second", reg_minutes=0.01, seed=1, log=lambda *a: None)
     m = join_heads(tiny_bundle, [tmp_path / "second"], out_dir=tmp_path / "joined", log=lambda *a: None)
-    assert m["heads"]["ensemble"]["members"] == 2
+    assert m.heads["ensemble"]["members"] == 2
     joined = PoseEstimator(tmp_path / "joined")  # hashes verified on load
     assert isinstance(joined.head, HeadEnsemble)
     members = [PoseEstimator(p).head for p in (tiny_bundle, tmp_path / "second")]
@@ -504,8 +504,7 @@ def test_join_heads_averages_refitted_heads_and_refuses_another_encoder(tiny_bun
     shutil.copytree(tmp_path / "second", other)
     with open(other / "encoder.onnx", "ab") as f:
         f.write(b"\0")  # another encoder, hashed anew: a consistent bundle, but not the same network
-    write_manifest(other, {k: v for k, v in json.loads((other / "manifest.json").read_text()).items()
-                           if k not in ("files", "format")})
+    write_manifest(other, Manifest.from_dict(json.loads((other / "manifest.json").read_text()), other))
     with pytest.raises(UserError, match="encoder"):
         join_heads(tiny_bundle, [other], out_dir=tmp_path / "bad", log=lambda *a: None)
     with pytest.raises(UserError, match="averages 2 head sets"):

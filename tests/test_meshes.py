@@ -6,8 +6,8 @@ import trimesh
 from scipy.spatial.distance import pdist
 from scipy.spatial.transform import Rotation
 
-from tracker.errors import UserError
-from tracker.meshes import compute_models_info, diameter, find_discrete_symmetries, load_mesh
+from tracker.core.errors import UserError
+from tracker.core.meshes import compute_models_info, diameter, find_discrete_symmetries, load_mesh
 
 # BOP's published models_info.json for LM-O (diameters, mm): an independent reference
 BOP_DIAMETERS = {1: 102.099, 5: 201.404, 6: 154.546, 8: 261.472, 9: 108.999, 10: 164.628,

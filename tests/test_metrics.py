@@ -1,15 +1,15 @@
-"""Pose errors (tracker.metrics) and BOP-style scoring (tracker.scoring): hand-computed pins."""
+"""Pose errors (tracker.evaluation.metrics) and BOP-style scoring (tracker.evaluation.scoring): hand-computed pins."""
 import json
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from tracker import metrics
-from tracker.bop import Estimate, load_models_info, symmetry_transforms, write_results
-from tracker.errors import UserError
-from tracker.paths import REPO
-from tracker.scoring import (ObjectEval, VISIB_FROM_GT_INFO, match_greedy, score_estimates, score_results,
+from tracker.evaluation import metrics
+from tracker.core.bop import Estimate, load_models_info, symmetry_transforms, write_results
+from tracker.core.errors import UserError
+from tracker.core.paths import REPO
+from tracker.evaluation.scoring import (ObjectEval, VISIB_FROM_GT_INFO, match_greedy, score_estimates, score_results,
                              write_metrics_json)
 
 K = np.array([[572.4114, 0.0, 325.2611], [0.0, 573.57043, 242.04899], [0.0, 0.0, 1.0]])
@@ -271,7 +271,7 @@ def test_score_results_end_to_end(tmp_path, lmo_dev, data_dir):
 def test_models_info_is_computed_once_and_cached(tmp_path, data_dir, monkeypatch):
     import shutil
 
-    from tracker import scoring
+    from tracker.evaluation import scoring
     models = tmp_path / "models"
     models.mkdir()
     shutil.copy(data_dir / "lmo" / "models" / "obj_000001.ply", models)
@@ -285,7 +285,7 @@ def test_models_info_is_computed_once_and_cached(tmp_path, data_dir, monkeypatch
 
 
 def test_vsd_hand_cases():
-    from tracker.metrics import vsd
+    from tracker.evaluation.metrics import vsd
     K = np.array([[500.0, 0, 50], [0, 500.0, 50], [0, 0, 1]])
     gt = np.zeros((100, 100))
     gt[20:60, 20:60] = 1000.0                      # a 40x40 px square at 1 m
@@ -308,9 +308,9 @@ def test_vsd_hand_cases():
 def test_vsd_in_scoring_on_a_synthetic_scene_with_depth(tmp_path, data_dir):
     """A synth scene with depth: the ground truth as estimates scores AR_VSD 1; poses pushed
     50 mm away lose most of it; without depth, ar_vsd is null."""
-    from tracker.bop import Estimate, load_scene, write_results
-    from tracker.scoring import score_results
-    from tracker.synth.engine import SynthConfig, generate
+    from tracker.core.bop import Estimate, load_scene, write_results
+    from tracker.evaluation.scoring import score_results
+    from tracker.build.synth.engine import SynthConfig, generate
     cfg = SynthConfig(models_dir=str(data_dir / "lmo" / "models"), backgrounds_dir=str(data_dir / "backgrounds"),
                       obj_ids=[1, 5, 9], seed=3, objects_per_image=(3, 3), depth=True)
     generate(cfg, tmp_path / "split", 2, workers=1, progress=False)

@@ -5,9 +5,9 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from tracker.nets.autoencoder import AutoEncoder  # noqa: E402
-from tracker.nets.fit import onehot, train_autoencoder  # noqa: E402
-from tracker.nets.precision import native_bf16, resolve  # noqa: E402
+from tracker.build.nets.autoencoder import AutoEncoder  # noqa: E402
+from tracker.build.nets.fit import onehot, train_autoencoder  # noqa: E402
+from tracker.build.nets.precision import native_bf16, resolve  # noqa: E402
 
 CPUINFO = "processor\t: 0\nflags\t\t: fpu sse2 avx2 avx512f {}\nbogomips\t: 4000\n"
 

@@ -1,8 +1,8 @@
 import numpy as np
 
-from tracker.geometry import box_from_points, iou_matrix, project
-from tracker.preview import render_gt_overlays
-from tracker.render import Renderer
+from tracker.core.geometry import box_from_points, iou_matrix, project
+from tracker.evaluation.preview import render_gt_overlays
+from tracker.runtime.render import Renderer
 
 
 def test_silhouettes_match_projected_vertices(lmo_dev, lmo_models):

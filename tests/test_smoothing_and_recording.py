@@ -3,9 +3,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from tracker.errors import UserError
-from tracker.geometry import rotation_error_deg
-from tracker.smoothing import PoseSmoother
+from tracker.core.errors import UserError
+from tracker.core.geometry import rotation_error_deg
+from tracker.runtime.smoothing import PoseSmoother
 
 
 def test_smoother_moves_part_of_the_way_and_resets():
@@ -36,8 +36,8 @@ def test_scene_as_video_reads_like_the_scene(data_dir, tmp_path):
     import json
     import shutil
 
-    from tracker.bop import load_scene
-    from tracker.recording import write_scene_video
+    from tracker.core.bop import load_scene
+    from tracker.runtime.recording import write_scene_video
     src = tmp_path / "src"
     (src / "rgb").mkdir(parents=True)
     dev = data_dir / "lmo" / "dev"

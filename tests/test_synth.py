@@ -5,10 +5,10 @@ import cv2
 import numpy as np
 import pytest
 
-from tracker.bop import load_scene
-from tracker.errors import UserError
-from tracker.geometry import project
-from tracker.synth.engine import SynthConfig, generate
+from tracker.core.bop import load_scene
+from tracker.core.errors import UserError
+from tracker.core.geometry import project
+from tracker.build.synth.engine import SynthConfig, generate
 
 OBJS = [1, 5, 9]  # small models keep the test quick
 
@@ -107,7 +107,7 @@ def test_same_seed_same_output(small_split, tmp_path, data_dir):
 
 
 def test_preview_montage(small_split, tmp_path):
-    from tracker.synth.preview import preview
+    from tracker.build.synth.preview import preview
     p = preview(small_split, tmp_path / "preview.png", n_scenes=4, n_crops=8)
     img = cv2.imread(str(p))
     assert img is not None and img.shape[1] == 1280
@@ -152,7 +152,7 @@ def test_sphere_prior_runs(data_dir, tmp_path):
 
 
 def _table_camera(elevation_deg, dist=900.0):
-    from tracker.synth.priors import look_at
+    from tracker.core.priors import look_at
     el = np.radians(elevation_deg)
     eye = dist * np.array([np.cos(el), 0.0, np.sin(el)])
     R = look_at(eye, np.zeros(3), np.array([0.0, 0.0, 1.0]))
@@ -160,8 +160,8 @@ def _table_camera(elevation_deg, dist=900.0):
 
 
 def test_table_surface_lies_on_the_plane_the_objects_stand_on():
-    from tracker.camera import LMO_K
-    from tracker.synth.randomise import _table_point, table_surface
+    from tracker.core.camera import LMO_K
+    from tracker.build.synth.randomise import _table_point, table_surface
     rng = np.random.default_rng(0)
     tex = rng.integers(0, 255, (480, 640, 3), dtype=np.uint8)
     R, t = _table_camera(30.0)
@@ -178,8 +178,8 @@ def test_table_surface_lies_on_the_plane_the_objects_stand_on():
 
 
 def test_shadows_darken_the_table_near_the_object_only():
-    from tracker.camera import LMO_K
-    from tracker.synth.randomise import cast_shadows
+    from tracker.core.camera import LMO_K
+    from tracker.build.synth.randomise import cast_shadows
     R, t = _table_camera(45.0)
     box = np.array([[x, y, z] for x in (-40, 40) for y in (-40, 40) for z in (0, 120)], float)  # on the table
     img = np.full((480, 640, 3), 200, np.uint8)
@@ -201,8 +201,8 @@ def test_the_table_changes_the_pixels_not_the_annotations(data_dir, tmp_path):
 
 
 def test_join_splits_links_the_scenes_in_order(small_split, tmp_path, data_dir):
-    from tracker.crops import build_training_crops
-    from tracker.synth.join import join_splits
+    from tracker.build.crops import build_training_crops
+    from tracker.build.synth.join import join_splits
     other = tmp_path / "other"
     generate(_cfg(data_dir, seed=6, p_table=0.0), other, 2, workers=1, progress=False)
     meta = join_splits(tmp_path / "joined", [small_split, other])
@@ -259,7 +259,7 @@ def test_overhead_lighting_changes_the_object_pixels_not_the_scenes(data_dir, tm
 
 
 def test_overhead_key_light_shines_down_and_dominates():
-    from tracker.synth.randomise import sample_overhead_lights
+    from tracker.build.synth.randomise import sample_overhead_lights
     down = np.array([0.0, 0.6, 0.8])  # a camera looking down at the table at about 53 degrees
     rng = np.random.default_rng(0)
     off = []
@@ -273,7 +273,7 @@ def test_overhead_key_light_shines_down_and_dominates():
 
 
 def test_an_interrupted_split_keeps_only_annotated_images(data_dir, tmp_path, monkeypatch):
-    from tracker.synth import engine
+    from tracker.build.synth import engine
     real, calls = engine._render_batch, []
 
     def stop_in_the_second_batch(args):
@@ -293,7 +293,7 @@ def test_an_interrupted_split_keeps_only_annotated_images(data_dir, tmp_path, mo
 
 
 def test_household_shapes_stand_upright_with_their_features():
-    from tracker.synth.randomise import household_meshes
+    from tracker.build.synth.randomise import household_meshes
     mug, cup, bottle = household_meshes(np.random.default_rng(0), 3)
     (x0, y0, _), (x1, y1, _) = mug.bounds
     assert x1 - x0 > 1.3 * (y1 - y0)  # the handle sticks out on one side only
@@ -312,8 +312,8 @@ def test_household_shapes_stand_upright_with_their_features():
 def test_photo_distractors_are_textured_tinted_and_unannotated(data_dir, tmp_path, style):
     from dataclasses import asdict
 
-    from tracker.synth import engine
-    from tracker.synth.randomise import target_palette
+    from tracker.build.synth import engine
+    from tracker.build.synth.randomise import target_palette
     cfg = _cfg(data_dir, seed=3, distractors=style)
     engine._init_worker(asdict(cfg))
     try:
@@ -322,7 +322,7 @@ def test_photo_distractors_are_textured_tinted_and_unannotated(data_dir, tmp_pat
                           axis=0).shape[0] for i in (0, 1, 2, 33, 34, 35)]
         assert min(cols) > 20  # a photo's patch, not a flat colour
         if style == "household":  # the second half: mugs, cups and bottles
-            from tracker.synth.randomise import household_meshes
+            from tracker.build.synth.randomise import household_meshes
             mug = household_meshes(np.random.default_rng([3, 10]), 1)[0]
             assert np.allclose(engine._W["verts"][engine.DISTRACTOR_BASE + 18], mug.vertices)
         for k in range(20):
@@ -333,7 +333,7 @@ def test_photo_distractors_are_textured_tinted_and_unannotated(data_dir, tmp_pat
         for k in ("scene", "crop"):
             engine._W.pop(k).close()
     # the palette is the targets' own colours
-    from tracker.meshes import load_models
+    from tracker.core.meshes import load_models
     models = load_models(cfg.models_dir, OBJS)
     pal = target_palette([models[o].mesh for o in OBJS], np.random.default_rng(0), per_mesh=4)
     own = np.concatenate([np.asarray(models[o].mesh.visual.vertex_colors)[:, :3] for o in OBJS]) / 255.0

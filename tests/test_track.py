@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 import rerun as rr
 
-from tracker.bop import read_results
-from tracker.errors import UserError
-from tracker.loop import TrackConfig, run_track
-from tracker.sinks import RERUN_GRPC_PORT, STAGES, RerunSink, port_taken
-from tracker.sources import CameraSource, open_source
+from tracker.core.bop import read_results
+from tracker.core.errors import UserError
+from tracker.runtime.loop import TrackConfig, run_track
+from tracker.runtime.sinks import RERUN_GRPC_PORT, STAGES, RerunSink, port_taken
+from tracker.runtime.sources import CameraSource, open_source
 
 
 def test_track_on_a_bop_replay_writes_valid_files(tiny_bundle, data_dir, tmp_path):
@@ -158,7 +158,7 @@ def test_a_run_that_fails_midway_keeps_its_summary(tiny_bundle, data_dir, tmp_pa
 def test_an_interrupted_run_writes_its_summary_without_scoring(tiny_bundle, data_dir, tmp_path, monkeypatch):
     import os
     import signal
-    from tracker import sinks
+    from tracker.runtime import sinks
     write = sinks.CsvSink.write
 
     def write_then_interrupt(self, *a, **kw):  # Ctrl-C while the second frame is being logged
@@ -176,7 +176,7 @@ def test_an_interrupted_run_writes_its_summary_without_scoring(tiny_bundle, data
 def test_finishing_a_run_defers_the_first_interrupt():
     import os
     import signal
-    from tracker.loop import _Deferred
+    from tracker.runtime.loop import _Deferred
     said = []
     with _Deferred(said.append, "scoring") as d:
         os.kill(os.getpid(), signal.SIGINT)  # the first: noted, not raised

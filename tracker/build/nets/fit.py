@@ -1,0 +1,183 @@
+"""Autoencoder training loop (torch, CPU): AdamW, plateau schedule, early stopping on the
+validation L2, the thesis's online augmentations, checkpoints and resume."""
+from __future__ import annotations
+
+import math
+import pickle
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.nn import functional as F
+from tqdm import tqdm
+
+from tracker.core.errors import UserError
+from tracker.build.nets import precision as prec
+from tracker.build.nets.autoencoder import AutoEncoder, loss_terms
+
+KL_ALPHA = 0.1  # Table 4.6
+
+
+def to_tensor(u8: np.ndarray) -> torch.Tensor:
+    """(N, S, S, 3) uint8 RGB -> (N, 3, S, S) float in [0, 1]."""
+    return torch.from_numpy(u8).permute(0, 3, 1, 2).float().div_(255.0)
+
+
+def augment(x: torch.Tensor, g: torch.Generator, p: float = 0.3) -> torch.Tensor:
+    """Thesis 4.3.5, each with probability p per image: colour jitter (brightness and
+    contrast 0.4-2.3, saturation 0.8-1.2), Gaussian blur (5x5, sigma 0.1-1.2), random
+    affine (translate 0.1, scale 0.9-1.1)."""
+    B = x.shape[0]
+
+    def pick():
+        return torch.rand(B, generator=g) < p
+
+    def U(lo, hi, n=B):
+        return lo + (hi - lo) * torch.rand(n, generator=g)
+
+    m = pick()
+    if m.any():
+        xb = x[m]
+        n = xb.shape[0]
+        xb = xb * U(0.4, 2.3, n)[:, None, None, None] ** 0.5  # brightness (range softened: sqrt)
+        mean = xb.mean(dim=(1, 2, 3), keepdim=True)
+        xb = (xb - mean) * U(0.4, 2.3, n)[:, None, None, None] ** 0.5 + mean  # contrast
+        grey = xb.mean(dim=1, keepdim=True)
+        xb = (xb - grey) * U(0.8, 1.2, n)[:, None, None, None] + grey  # saturation
+        x = x.clone()
+        x[m] = xb.clamp(0, 1)
+    m = pick()
+    if m.any():
+        sig = float(U(0.1, 1.2, 1))
+        k = torch.exp(-(torch.arange(5) - 2.0) ** 2 / (2 * sig * sig))
+        k = (k / k.sum()).float()
+        kern = (k[:, None] * k[None, :])[None, None].repeat(3, 1, 1, 1)
+        x = x.clone()
+        x[m] = F.conv2d(F.pad(x[m], (2, 2, 2, 2), mode="replicate"), kern, groups=3)
+    m = pick()
+    if m.any():
+        n = int(m.sum())
+        s = U(0.9, 1.1, n)
+        theta = torch.zeros(n, 2, 3)
+        theta[:, 0, 0] = 1 / s
+        theta[:, 1, 1] = 1 / s
+        theta[:, :, 2] = U(-0.2, 0.2, 2 * n).view(n, 2)  # translate 0.1 of the size (grid units: 2)
+        grid = F.affine_grid(theta, list(x[m].shape), align_corners=False)
+        x = x.clone()
+        x[m] = F.grid_sample(x[m], grid, padding_mode="zeros", align_corners=False)
+    return x
+
+
+def onehot(obj_idx: np.ndarray, n: int) -> torch.Tensor:
+    return F.one_hot(torch.from_numpy(obj_idx).long(), n).float()
+
+
+def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, out_dir: Path,
+                      minutes: float = 45.0, batch: int = 128, lr: float = 1e-3, patience: int = 50,
+                      seed: int = 0, init_from=None, precision: str = "fp32", max_epochs: int = 1000,
+                      log=print) -> dict:
+    """Train until the time budget, early stopping, or ``max_epochs``. Resumes from
+    ``out_dir/ae_checkpoint.pt`` when it exists; otherwise ``init_from`` (another run's
+    checkpoint) gives the starting weights and optimiser state, with a fresh budget, history
+    and best validation loss (the validation crops differ). ``precision`` ('auto', 'bf16' or
+    'fp32', see ``precision.resolve``) is the arithmetic of the training passes; validation is float32.
+    Returns the training history."""
+    torch.manual_seed(seed)
+    g = torch.Generator().manual_seed(seed)
+    opt = torch.optim.AdamW(model.parameters(), lr=lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=1e-2)
+    sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, factor=0.2, patience=3, min_lr=1e-6)
+    ckpt = Path(out_dir) / "ae_checkpoint.pt"
+    best_path = Path(out_dir) / "ae_best.pt"
+    hist = {"epoch": [], "train_l2": [], "val_l2": [], "lr": [], "seconds": []}
+    start_epoch, best, since_best, spent = 0, math.inf, 0, 0.0
+    source = ckpt if ckpt.is_file() else (Path(init_from) if init_from else None)
+    if source is not None:
+        try:
+            st = torch.load(source, weights_only=True)  # tensors and plain containers only: no code runs
+            model.load_state_dict(st["model"])
+            opt.load_state_dict(st["opt"])
+            sched.load_state_dict(st["sched"])
+        except FileNotFoundError:
+            raise UserError(f"{source}: no such checkpoint (--init-from takes an ae_checkpoint.pt)") from None
+        except (RuntimeError, KeyError, ValueError, TypeError, EOFError, pickle.UnpicklingError) as e:
+            hint = (f"delete {Path(out_dir)} to start afresh, or train into another --out" if source == ckpt
+                    else "--init-from must come from a run with the same --method, --encoder, --size, --latent and objects")
+            raise UserError(f"{source} is the checkpoint of another network ({type(e).__name__}): {hint}") from None
+        g.set_state(st["gen"])
+        if source == ckpt:
+            start_epoch, best, since_best, hist, spent = st["epoch"] + 1, st["best"], st["since_best"], st["hist"], st["spent"]
+            log(f"resumed from {ckpt} at epoch {start_epoch} ({spent / 60:.1f} min spent, best val L2 {best:.2f})")
+        else:
+            sched.best, sched.num_bad_epochs = sched.mode_worse, 0  # judged afresh on this run's validation crops
+            log(f"started from the weights of {source} (epoch {st['epoch']}, {st['spent'] / 60:.1f} min there); "
+                f"new budget, history and best validation L2")
+    if ckpt.is_file() and init_from:
+        log("--init-from ignored: resuming this run's own checkpoint")
+    variational = model.encoder.variational
+    cond = model.n_cond > 0
+    precision = prec.resolve(precision)  # 'auto' too; once, not per batch
+    prec.channels_last(model)
+    n = len(x_tr)
+    t_start = time.perf_counter() - spent
+    for epoch in range(start_epoch, max_epochs):
+        model.train()
+        perm = torch.randperm(n, generator=g).numpy()
+        tot, cnt = 0.0, 0
+        bar = tqdm(range(0, n, batch), desc=f"epoch {epoch}", unit="batch", leave=False)
+        for i in bar:
+            idx = np.sort(perm[i:i + batch])
+            xb = prec.channels_last(augment(to_tensor(x_tr[idx]), g))
+            yb = to_tensor(y_tr[idx])
+            cb = c_tr[idx] if cond else None
+            with prec.autocast(precision):
+                recon, mu, logvar = model(xb, cb)
+            l2, kl = loss_terms(recon, yb, mu, logvar)
+            loss = l2 + (KL_ALPHA * kl if variational else 0.0)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            tot += float(l2.detach()) * len(idx)
+            cnt += len(idx)
+            bar.set_postfix(l2=f"{tot / cnt:.1f}")
+            if time.perf_counter() - t_start > minutes * 60:
+                break
+        val = evaluate_l2(model, x_va, y_va, c_va if cond else None, batch=256)
+        sched.step(val)
+        spent = time.perf_counter() - t_start
+        for k, v in zip(hist, (epoch, tot / max(cnt, 1), val, opt.param_groups[0]["lr"], spent)):
+            hist[k].append(v)
+        improved = val < best
+        if improved:
+            best, since_best = val, 0
+            torch.save(model.state_dict(), best_path)
+        else:
+            since_best += 1
+        log(f"epoch {epoch}: train L2 {tot / max(cnt, 1):.2f}, val L2 {val:.2f}{' *' if improved else ''}, "
+            f"lr {opt.param_groups[0]['lr']:.1e}, {spent / 60:.1f} min")
+        torch.save({"model": model.state_dict(), "opt": opt.state_dict(), "sched": sched.state_dict(),
+                    "gen": g.get_state(), "epoch": epoch, "best": best, "since_best": since_best,
+                    "hist": hist, "spent": spent}, ckpt)
+        if since_best >= patience or spent > minutes * 60:
+            break
+    model.load_state_dict(torch.load(best_path, weights_only=True))
+    model.to(memory_format=torch.contiguous_format)
+    return hist
+
+
+@torch.no_grad()
+def evaluate_l2(model, x, y, c=None, batch=256) -> float:
+    model.eval()
+    tot = 0.0
+    for i in range(0, len(x), batch):
+        recon, mu, logvar = model(to_tensor(x[i:i + batch]), None if c is None else c[i:i + batch])
+        tot += float(((recon - to_tensor(y[i:i + batch])) ** 2).flatten(1).sum(1).sum())
+    return tot / max(len(x), 1)
+
+
+@torch.no_grad()
+def encode_all(model, x, c=None, batch=512) -> np.ndarray:
+    model.eval()
+    out = [model.encoder(to_tensor(x[i:i + batch]), None if c is None else c[i:i + batch]).numpy()
+           for i in range(0, len(x), batch)]
+    return np.concatenate(out).astype(np.float32)

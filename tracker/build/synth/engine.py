@@ -1,0 +1,362 @@
+"""Synthetic BOP splits: scenes of randomly posed objects, rendered, randomised, annotated.
+
+Layout written under OUT (BOP, chunks of 1000 images per scene folder):
+
+    OUT/synth_config.json                 how it was made (prior, seed, counts, command)
+    OUT/NNNNNN/rgb/IIIIII.jpg             640x480 (by default) frames, JPEG at random quality
+    OUT/NNNNNN/mask_visib/IIIIII_KKKKKK.png
+    OUT/NNNNNN/clean/IIIIII_KKKKKK.png    reconstruction target: the object alone, neutral
+                                          light, black background, whole object, CROPxCROP
+    OUT/NNNNNN/scene_camera.json, scene_gt.json, scene_gt_info.json
+    OUT/NNNNNN/clean_crops.json           {im_id: [[x0, y0, side], ...]} window of each clean crop
+
+Every image is a pure function of (seed, global image index): the worker count changes speed,
+never content. Workers (spawn) keep one renderer each for their whole life; they write image
+files, the parent writes the JSON files (rewritten as it goes, so an interrupt loses at most
+the images in flight).
+"""
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import resource
+import shutil
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from tracker.core.bop import write_json
+from tracker.core.camera import LMO_K
+from tracker.core.errors import UserError
+from tracker.core.visibility import scene_visibility
+from tracker.core import priors
+from tracker.build.synth.randomise import (Backgrounds, camera_effects, cast_shadows, composite, distractor_meshes, household_meshes,
+                        jitter_colours, target_palette, texture_from_photos, tint_distractors,
+                        list_backgrounds, sample_lights, sample_materials, sample_overhead_lights,
+                        table_surface)
+
+CHUNK = 1000
+DEPTH_SCALE = 0.1  # mm per unit of the written depth PNGs (up to 6.5 m)
+DISTRACTOR_BASE = 100000  # renderer ids of distractor meshes
+HARD_DISTRACTORS_PER_IMAGE = (2, 8)
+# per style: how many primitives and how many household shapes (mugs, cups, bottles)
+DISTRACTOR_SETS = {"plain": (12, 0), "hard": (36, 0), "household": (18, 18)}
+DISTRACTOR_STYLES = tuple(DISTRACTOR_SETS)
+LIGHTING_STYLES = ("camera", "overhead")
+PHOTO_DISTRACTORS = ("hard", "household")  # textured from the photos, tinted, 2-8 per image
+
+
+@dataclass
+class SynthConfig:
+    models_dir: str
+    backgrounds_dir: str
+    seed: int = 0
+    prior: str = "table"
+    width: int = 640
+    height: int = 480
+    K: list = field(default_factory=lambda: LMO_K.tolist())
+    objects_per_image: tuple = (3, 8)
+    distractors_per_image: tuple = (0, 5)
+    p_occluder: float = 0.35
+    # 'table' prior: how often the table's surface is drawn (a photo laid on the plane the
+    # objects stand on, with their soft shadows) instead of a photo behind floating objects
+    p_table: float = 0.7
+    # share of (image, object) pairs rendered with a glossy, partly metallic material instead
+    # of the matte default (real plastic and ceramic show highlights that vertex colours lack);
+    # drawn from their own random stream, so 0 reproduces the images of before byte for byte
+    p_gloss: float = 0.0
+    # "plain": 12 primitives with noisy random colours, 0-5 per image (data made before);
+    # "hard": 36 primitives textured from the background photos, 2-8 per image, tinted per
+    # image, half the time with a target's colour (real clutter: yellow cups, white boxes);
+    # "household": as "hard", with 18 of the 36 shapes mugs, cups and bottles
+    distractors: str = "plain"
+    # "camera": 1-3 lights from the camera's side, ambient 0.15-0.5 (data made before);
+    # "overhead": a strong key light from above the table, a weak fill, little ambient, drawn
+    # from their own random stream (same scenes as "camera" with the same seed, other light)
+    lighting: str = "camera"
+    crop_size: int = 128  # clean targets, rendered in the visibility window (visibility.WINDOW_PAD)
+    jpeg_quality: tuple = (70, 95)
+    obj_ids: list | None = None
+    # render the objects with their meshes decimated to about this many faces (the CPU
+    # rasteriser's cost grows with triangles); None: the full meshes
+    mesh_faces: int | None = None
+    depth: bool = False  # write depth/NNNNNN.png (uint16, DEPTH_SCALE mm per unit), as BOP scenes have
+
+
+@dataclass
+class SynthReport:
+    images: int
+    instances: int
+    crops_visib_ge_0_1: int
+    seconds: float
+    images_per_s: float
+    crops_per_s: float
+    peak_rss_mb_parent: float
+    peak_rss_mb_worker: float
+    workers: int
+    interrupted: bool = False
+
+
+# --------------------------------------------------------------------------- worker side
+
+_W = {}  # per-process state: renderers, meshes, backgrounds
+
+
+def _init_worker(cfg_dict: dict):
+    os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+    # one rasteriser thread per worker: two workers with llvmpipe's default thread per core
+    # fight over the 2 cores (measured 8.1 -> 9.4 images/s at 640x480, --mesh-faces 4000)
+    os.environ.setdefault("LP_NUM_THREADS", "1")
+    import warnings
+    warnings.simplefilter("ignore")  # a colourless mesh warns once in the parent, not per worker
+    cv2.setNumThreads(1)
+    from tracker.core.meshes import diameter, load_models
+    from tracker.runtime.render import Renderer
+    cfg = SynthConfig(**cfg_dict)
+    models = load_models(cfg.models_dir, cfg.obj_ids)
+    photo = cfg.distractors in PHOTO_DISTRACTORS
+    n_primitives, n_household = DISTRACTOR_SETS[cfg.distractors]
+    dis = distractor_meshes(np.random.default_rng([cfg.seed, 7]), n_primitives) + \
+        household_meshes(np.random.default_rng([cfg.seed, 10]), n_household)
+    bgs = Backgrounds(list_backgrounds(cfg.backgrounds_dir))
+    if photo:
+        texture_from_photos(dis, bgs.images, np.random.default_rng([cfg.seed, 8]))
+    meshes = {k: m.mesh for k, m in models.items()}
+    if cfg.mesh_faces:
+        from tracker.build.decimate import decimate_mesh
+        meshes = {k: decimate_mesh(m, cfg.mesh_faces) for k, m in meshes.items()}
+    targets = dict(meshes)
+    meshes.update({DISTRACTOR_BASE + i: m for i, m in enumerate(dis)})
+    _W.update(
+        cfg=cfg,
+        K=np.asarray(cfg.K, dtype=np.float64),
+        obj_ids=sorted(models),
+        verts={**{k: m.vertices for k, m in models.items()},
+               **{DISTRACTOR_BASE + i: np.asarray(m.vertices) for i, m in enumerate(dis)}},
+        radius={**{k: diameter(m.vertices) / 2 for k, m in models.items()},
+                **{DISTRACTOR_BASE + i: diameter(np.asarray(m.vertices)) / 2 for i, m in enumerate(dis)}},
+        n_dis=len(dis),
+        scene=Renderer(cfg.width, cfg.height, meshes),
+        crop=Renderer(cfg.crop_size, cfg.crop_size, targets),
+        bgs=bgs,
+        palette=target_palette([models[k].mesh for k in sorted(models)], np.random.default_rng([cfg.seed, 9])),
+    )
+
+
+def _sample_instances(rng, cfg: SynthConfig):
+    """Targets and distractors with their poses: [(renderer id, R, t)], the number of targets,
+    the number standing on the table (the first ones) and the table's pose (None: no table)."""
+    obj_ids, K = _W["obj_ids"], _W["K"]
+    lo, hi = cfg.objects_per_image
+    n_t = int(min(len(obj_ids), rng.integers(lo, hi + 1)))
+    targets = [int(x) for x in rng.choice(obj_ids, n_t, replace=False)]
+    lo_d, hi_d = HARD_DISTRACTORS_PER_IMAGE if cfg.distractors in PHOTO_DISTRACTORS else cfg.distractors_per_image
+    n_d = int(rng.integers(lo_d, hi_d + 1))
+    dis = [DISTRACTOR_BASE + int(x) for x in rng.integers(0, _W["n_dis"], n_d)]
+    ids = targets + dis
+    if cfg.prior == "table":
+        poses, table = priors.sample_table_scene(rng, [_W["verts"][i] for i in ids], [_W["radius"][i] for i in ids])
+    else:
+        poses, table = priors.sample_sphere_scene(rng, [_W["radius"][i] for i in ids], K, (cfg.width, cfg.height)), None
+    inst = [(i, R, t) for i, (R, t) in zip(ids, poses)]
+    if rng.random() < cfg.p_occluder and targets:
+        for _ in range(int(rng.integers(1, 3))):
+            tgt = inst[int(rng.integers(n_t))]
+            R, t = priors.table_occluder_pose(rng, tgt[2])
+            inst.append((DISTRACTOR_BASE + int(rng.integers(_W["n_dis"])), R, t))
+    return inst, n_t, len(ids), table
+
+
+def _table_background(bg, rng, cfg: SynthConfig, inst, n_on_table, table, light_dir_c):
+    """The table's surface over the photo where the camera sees it, with the shadows of the
+    objects standing on it."""
+    R_w2c, t_w2c = table
+    top, mask = table_surface(_W["bgs"].sample(rng, cfg.width, cfg.height), _W["K"], R_w2c, t_w2c, rng)
+    bg = np.where(mask[..., None], top, bg)
+    world = [((_W["verts"][i] @ R.T) + t - t_w2c) @ R_w2c for i, R, t in inst[:n_on_table]]
+    return cast_shadows(bg, world, R_w2c.T @ np.asarray(light_dir_c, np.float64), _W["K"], R_w2c, t_w2c, rng)
+
+def render_one(index: int, out_root: str) -> dict:
+    """Render, annotate and write global image ``index``; returns its JSON records."""
+    cfg: SynthConfig = _W["cfg"]
+    K = _W["K"]
+    rng = np.random.default_rng([cfg.seed, index])
+    chunk, im_id = divmod(index, CHUNK)
+    root = Path(out_root) / f"{chunk:06d}"
+    inst, n_t, n_on_table, table = _sample_instances(rng, cfg)
+    scene, crop_r = _W["scene"], _W["crop"]
+
+    lights, ambient = sample_lights(rng)  # drawn either way: the scene's later draws stay the same
+    if cfg.lighting == "overhead":
+        # straight down in the scene: the table's -z, or the image's downward axis without a table
+        down_c = table[0] @ np.array([0.0, 0.0, -1.0]) if table is not None else np.array([0.0, 1.0, 0.3])
+        lights, ambient = sample_overhead_lights(np.random.default_rng([cfg.seed, index, 3]), down_c)
+    if cfg.p_gloss > 0:
+        sample_materials(scene, _W["obj_ids"], cfg.p_gloss, np.random.default_rng([cfg.seed, index, 1]))
+    if cfg.distractors in PHOTO_DISTRACTORS:
+        tint_distractors(scene, [DISTRACTOR_BASE + i for i in range(_W["n_dis"])], _W["palette"],
+                         np.random.default_rng([cfg.seed, index, 2]))
+    scene.set_lights(lights)
+    scene.set_ambient(ambient)
+    rgb, depth = scene.render(K, inst)
+    rgb = rgb.copy()
+
+    gts, infos, windows = [], [], []
+    crop_r.set_lights([((0.0, 0.0, 1.0), (1.0, 1.0, 1.0), 2.5)])  # neutral light for the targets
+    crop_r.set_ambient(0.45)
+    labels = scene.render_labels(K, inst)
+    for k, vis in enumerate(scene_visibility(scene, crop_r, K, inst, _W["verts"], n_t, labels, keep_rgb=True)):
+        oid, R, t = inst[k]
+        jitter_colours(rgb, vis.mask_visib, vis.bbox_visib, rng)
+        win = vis.window
+        cv2.imwrite(str(root / "clean" / f"{im_id:06d}_{k:06d}.png"),
+                    cv2.cvtColor(vis.alone_rgb, cv2.COLOR_RGB2BGR))
+        cv2.imwrite(str(root / "mask_visib" / f"{im_id:06d}_{k:06d}.png"), vis.mask_visib.astype(np.uint8) * 255)
+        gts.append({"cam_R_m2c": R.ravel().tolist(), "cam_t_m2c": t.ravel().tolist(), "obj_id": oid})
+        infos.append({"bbox_obj": vis.bbox_obj, "bbox_visib": vis.bbox_visib, "px_count_all": vis.px_count_all,
+                      "px_count_valid": vis.px_count_valid, "px_count_visib": vis.px_count_visib,
+                      "visib_fract": round(vis.visib_fract, 6)})
+        windows.append([win.x0, win.y0, win.side])
+
+    bg = _W["bgs"].sample(rng, cfg.width, cfg.height)
+    if table is not None and cfg.p_table > 0 and rng.random() < cfg.p_table:  # 0: the draws of before
+        bg = _table_background(bg, rng, cfg, inst, n_on_table, table, lights[0][0])
+    img = composite(bg, rgb, depth > 0)
+    img = camera_effects(img, rng)
+    q = int(rng.integers(cfg.jpeg_quality[0], cfg.jpeg_quality[1] + 1))
+    cv2.imwrite(str(root / "rgb" / f"{im_id:06d}.jpg"), cv2.cvtColor(img, cv2.COLOR_RGB2BGR),
+                [cv2.IMWRITE_JPEG_QUALITY, q])
+    if cfg.depth:
+        d = np.clip(np.round(depth / DEPTH_SCALE), 0, 65535).astype(np.uint16)
+        cv2.imwrite(str(root / "depth" / f"{im_id:06d}.png"), d)
+    return {"index": index, "chunk": chunk, "im_id": im_id, "gt": gts, "info": infos, "windows": windows,
+            "cam": {"cam_K": K.ravel().tolist(), "depth_scale": DEPTH_SCALE if cfg.depth else 1.0}}
+
+
+def _render_batch(args):
+    indices, out_root = args
+    return [render_one(i, out_root) for i in indices]
+
+
+# --------------------------------------------------------------------------- parent side
+
+
+class _ChunkWriter:
+    """Collects records and (re)writes each chunk's JSON files."""
+
+    def __init__(self, out: Path):
+        self.out = out
+        self.chunks: dict[int, dict] = {}
+
+    def add(self, rec: dict):
+        c = self.chunks.setdefault(rec["chunk"], {"cam": {}, "gt": {}, "info": {}, "win": {}})
+        k = str(rec["im_id"])
+        c["cam"][k], c["gt"][k], c["info"][k], c["win"][k] = rec["cam"], rec["gt"], rec["info"], rec["windows"]
+
+    def flush(self):
+        for chunk, c in self.chunks.items():
+            root = self.out / f"{chunk:06d}"
+            order = sorted(c["cam"], key=int)
+            for name, key in (("scene_camera", "cam"), ("scene_gt", "gt"), ("scene_gt_info", "info"),
+                              ("clean_crops", "win")):
+                write_json(root / f"{name}.json", {k: c[key][k] for k in order})
+
+    def prune(self, n_chunks: int):
+        """After an interruption: delete the files of images whose records never arrived (a
+        worker stopped between writing them and returning), and chunk folders left empty,
+        so that what remains is a loadable split."""
+        for chunk in range(n_chunks):
+            root = self.out / f"{chunk:06d}"
+            kept = set(self.chunks.get(chunk, {"cam": {}})["cam"])
+            if not kept:
+                shutil.rmtree(root, ignore_errors=True)
+                continue
+            for sub in ("rgb", "mask_visib", "clean", "depth"):
+                for f in (root / sub).glob("*") if (root / sub).is_dir() else ():
+                    if str(int(f.name.split("_")[0].split(".")[0])) not in kept:
+                        f.unlink()
+
+
+def _peak_rss_mb(who) -> float:
+    return resource.getrusage(who).ru_maxrss / 1024.0
+
+
+def generate(cfg: SynthConfig, out_dir, n_images: int, workers: int = 2, batch: int = 4,
+             progress: bool = True, command: str | None = None) -> SynthReport:
+    if n_images <= 0:
+        raise UserError(f"--images must be positive, got {n_images}")
+    if cfg.prior not in priors.PRIORS:
+        raise UserError(f"unknown prior '{cfg.prior}' (choose from {', '.join(priors.PRIORS)})")
+    if not 0.0 <= cfg.p_table <= 1.0:
+        raise UserError(f"--p-table must be between 0 and 1, got {cfg.p_table}")
+    if not 0.0 <= cfg.p_gloss <= 1.0:
+        raise UserError(f"--gloss must be between 0 and 1, got {cfg.p_gloss}")
+    if cfg.distractors not in DISTRACTOR_STYLES:
+        raise UserError(f"unknown distractor style '{cfg.distractors}' (choose from {', '.join(DISTRACTOR_STYLES)})")
+    if cfg.lighting not in LIGHTING_STYLES:
+        raise UserError(f"unknown lighting '{cfg.lighting}' (choose from {', '.join(LIGHTING_STYLES)})")
+    list_backgrounds(cfg.backgrounds_dir)  # fail early, in the parent
+    from tracker.core.meshes import load_models
+    models = load_models(cfg.models_dir, cfg.obj_ids)  # fail early (and warn once) on bad meshes
+    if cfg.obj_ids is None:
+        cfg.obj_ids = sorted(models)
+    out = Path(out_dir)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise UserError(f"--out {out} is not an empty folder: give a new one (old images would be mixed in)")
+    for chunk in range((n_images - 1) // CHUNK + 1):
+        for sub in ("rgb", "mask_visib", "clean") + (("depth",) if cfg.depth else ()):
+            (out / f"{chunk:06d}" / sub).mkdir(parents=True, exist_ok=True)
+    meta = {"config": asdict(cfg), "images": n_images, "chunk": CHUNK,
+            "command": command or " ".join(sys.argv), "created": time.strftime("%Y-%m-%d %H:%M:%S")}
+    write_json(out / "synth_config.json", meta)
+
+    tasks = [(list(range(i, min(i + batch, n_images))), str(out)) for i in range(0, n_images, batch)]
+    writer = _ChunkWriter(out)
+    done = n_inst = n_crops = 0
+    interrupted = False
+    t0 = time.perf_counter()
+    from tqdm import tqdm
+    bar = tqdm(total=n_images, unit="img", desc="synth", disable=not progress)
+    ctx = mp.get_context("spawn")
+    pool = ctx.Pool(workers, initializer=_init_worker, initargs=(asdict(cfg),)) if workers > 1 else None
+    if pool is None:
+        _init_worker(asdict(cfg))
+    try:
+        it = pool.imap_unordered(_render_batch, tasks) if pool else map(_render_batch, tasks)
+        last_flush = time.perf_counter()
+        for recs in it:
+            for rec in recs:
+                writer.add(rec)
+                n_inst += len(rec["info"])
+                n_crops += sum(i["visib_fract"] >= 0.1 for i in rec["info"])
+            done += len(recs)
+            bar.update(len(recs))
+            if time.perf_counter() - last_flush > 10:
+                writer.flush()
+                last_flush = time.perf_counter()
+    except KeyboardInterrupt:
+        interrupted = True
+        if pool:
+            pool.terminate()
+    finally:
+        bar.close()
+        writer.flush()
+        if pool:
+            if not interrupted:
+                pool.close()
+            pool.join()
+        else:
+            for k in ("scene", "crop"):
+                if k in _W:
+                    _W.pop(k).close()
+        if interrupted:
+            writer.prune((n_images - 1) // CHUNK + 1)
+    dt = time.perf_counter() - t0
+    meta.update(images_written=done, seconds=round(dt, 1), interrupted=interrupted)
+    write_json(out / "synth_config.json", meta)
+    return SynthReport(done, n_inst, n_crops, dt, done / dt, n_crops / dt, _peak_rss_mb(resource.RUSAGE_SELF),
+                       _peak_rss_mb(resource.RUSAGE_CHILDREN), workers, interrupted)

@@ -1,0 +1,161 @@
+"""Object meshes: loading, and BOP ``models_info`` (diameter, bounding box, symmetries)."""
+from __future__ import annotations
+
+import re
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import trimesh
+from scipy.spatial import ConvexHull, cKDTree
+from scipy.spatial.distance import pdist
+from scipy.spatial.transform import Rotation
+
+from tracker.core.errors import UserError
+
+GREY = np.array([160, 160, 160, 255], dtype=np.uint8)
+MODEL_RE = re.compile(r"^obj_(\d{6})\.ply$")
+# A 180-degree turn is taken as a symmetry when, after rigid refinement, every vertex of
+# the turned model lies within this fraction of the diameter of the model. Measured on the
+# 8 LM-O models: eggbox 0.055 and glue 0.051, nearest non-symmetric case 0.080
+# (holepuncher about x), the others 0.12 and above.
+SYMMETRY_HAUSDORFF = 0.065
+
+
+@dataclass
+class ObjectModel:
+    obj_id: int
+    path: Path
+    mesh: trimesh.Trimesh
+    has_colours: bool
+
+    @property
+    def vertices(self) -> np.ndarray:
+        return np.asarray(self.mesh.vertices, dtype=np.float64)
+
+
+def load_mesh(path, obj_id: int | None = None) -> ObjectModel:
+    """Load a PLY/OBJ mesh in millimetres; meshes without colours get a grey default."""
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"mesh not found: {path}")
+    try:
+        mesh = trimesh.load(path, process=False, force="mesh")
+    except Exception as e:  # trimesh raises many types for garbled files
+        raise UserError(f"{path}: unreadable mesh ({e.__class__.__name__}: {str(e)[:80]})") from None
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.vertices) < 4 or len(mesh.faces) < 1:
+        raise UserError(f"{path}: mesh has no triangles")
+    if not np.all(np.isfinite(mesh.vertices)):
+        raise UserError(f"{path}: mesh has non-finite vertices")
+    has_colours = getattr(mesh.visual, "kind", None) == "vertex"
+    if not has_colours:
+        warnings.warn(f"{path.name}: no vertex colours, rendering it grey", stacklevel=2)
+        mesh.visual = trimesh.visual.ColorVisuals(mesh, vertex_colors=np.tile(GREY, (len(mesh.vertices), 1)))
+    if obj_id is None:
+        m = MODEL_RE.match(path.name)
+        obj_id = int(m.group(1)) if m else 0
+    return ObjectModel(obj_id, path, mesh, has_colours)
+
+
+def load_models(models_dir, obj_ids=None) -> dict[int, ObjectModel]:
+    """All ``obj_NNNNNN.ply`` of a BOP models folder (or just ``obj_ids``)."""
+    d = Path(models_dir)
+    if not d.is_dir():
+        raise UserError(f"models folder not found: {d}")
+    found = {int(MODEL_RE.match(p.name).group(1)): p for p in sorted(d.iterdir()) if MODEL_RE.match(p.name)}
+    if not found:
+        raise UserError(f"{d}: no obj_NNNNNN.ply models")
+    if obj_ids is not None:
+        missing = sorted(set(obj_ids) - set(found))
+        if missing:
+            raise UserError(f"{d}: no model for object id(s) {missing}")
+        found = {k: found[k] for k in obj_ids}
+    return {k: load_mesh(p, k) for k, p in found.items()}
+
+
+def genus(mesh) -> int | None:
+    """Topological genus (number of handles) of a closed mesh from its Euler characteristic,
+    V - E + F = 2 - 2g per component; None if the mesh is not watertight. LM-O: the can has
+    genus 2 and the holepuncher 3, the others 0 (the thesis's Section 4.3.3 uses genus as a
+    shape attribute the latent space may encode)."""
+    m = trimesh.Trimesh(np.asarray(mesh.vertices), np.asarray(mesh.faces), process=False)
+    if not m.is_watertight:
+        return None
+    n_comp = len(m.split(only_watertight=False))
+    return int(round((2 * n_comp - m.euler_number) / 2))
+
+
+def diameter(vertices: np.ndarray) -> float:
+    """Largest distance between two vertices (over the convex hull's vertices)."""
+    v = np.asarray(vertices, dtype=np.float64)
+    try:
+        v = v[ConvexHull(v).vertices]
+    except Exception:  # degenerate (flat) models: all vertices
+        pass
+    return float(pdist(v).max())
+
+
+def _kabsch(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares rigid transform with R @ A_i + t ~ B_i."""
+    ca, cb = A.mean(0), B.mean(0)
+    U, _, Vt = np.linalg.svd((A - ca).T @ (B - cb))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
+    return R, cb - R @ ca
+
+
+def refine_self_alignment(vertices: np.ndarray, R0: np.ndarray, iters: int = 30,
+                          sample: int = 3000, seed: int = 0) -> tuple[np.ndarray, np.ndarray, float]:
+    """ICP of the model onto itself from the rotation R0 (about the centroid).
+
+    Returns the refined R, t and the Hausdorff distance (max over vertices of the
+    distance of the transformed vertex to the nearest model vertex) in mm.
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    tree = cKDTree(v)
+    rng = np.random.default_rng(seed)
+    sub = v[rng.choice(len(v), min(sample, len(v)), replace=False)]
+    c = v.mean(0)
+    R, t = R0, c - R0 @ c
+    for _ in range(iters):
+        _, idx = tree.query(sub @ R.T + t)
+        R, t = _kabsch(sub, v[idx])
+    d_fwd, _ = tree.query(v @ R.T + t)
+    d_bwd, _ = cKDTree(v @ R.T + t).query(v)
+    return R, t, float(max(d_fwd.max(), d_bwd.max()))
+
+
+def find_discrete_symmetries(vertices: np.ndarray, diam: float,
+                             threshold: float = SYMMETRY_HAUSDORFF) -> list[dict]:
+    """2-fold (180 degree) symmetries about the model axes, each checked by Hausdorff distance.
+
+    Returns ``[{"T": 4x4, "axis": "x|y|z", "hausdorff_mm": float}]``.
+    """
+    out = []
+    for name, axis in zip("xyz", np.eye(3)):
+        R0 = Rotation.from_rotvec(axis * np.pi).as_matrix()
+        R, t, h = refine_self_alignment(vertices, R0)
+        if h <= threshold * diam:
+            T = np.eye(4)
+            T[:3, :3], T[:3, 3] = R, t
+            out.append({"T": T, "axis": name, "hausdorff_mm": h})
+    return out
+
+
+def models_info_entry(model: ObjectModel, symmetries: bool = True) -> dict:
+    v = model.vertices
+    lo, hi = v.min(0), v.max(0)
+    d = diameter(v)
+    info = {"diameter": d,
+            "min_x": float(lo[0]), "min_y": float(lo[1]), "min_z": float(lo[2]),
+            "size_x": float(hi[0] - lo[0]), "size_y": float(hi[1] - lo[1]), "size_z": float(hi[2] - lo[2])}
+    if symmetries:
+        syms = find_discrete_symmetries(v, d)
+        if syms:
+            info["symmetries_discrete"] = [s["T"].ravel().tolist() for s in syms]
+    return info
+
+
+def compute_models_info(models: dict[int, ObjectModel], symmetries: bool = True) -> dict[int, dict]:
+    return {k: models_info_entry(m, symmetries) for k, m in sorted(models.items())}

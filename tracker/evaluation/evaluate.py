@@ -1,0 +1,121 @@
+"""``app.py eval``: run a bundle on a BOP scene and score it with the BOP metrics."""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from tracker.core.bop import Estimate, load_scene, write_results
+from tracker.core.errors import UserError
+from tracker.runtime.estimator import Detection, PoseEstimator
+
+
+def bop_csv_name(method: str, dataset: str = "lmo", split: str = "test") -> str:
+    """BOP's rule for result files: METHOD_DATASET-SPLIT.csv (no '_' inside METHOD)."""
+    return f"{method.replace('_', '-')}_{dataset}-{split}.csv"
+
+
+def gt_boxes(scene, models, im_ids) -> tuple[dict[int, list], str]:
+    """Visible GT boxes per image: scene_gt_info's bbox_visib, else rendered from the known objects."""
+    from tracker.evaluation.scoring import VISIB_FROM_GT_INFO, VISIB_RENDERED, rendered_gt_visibility
+    if all("bbox_visib" in g.info for i in im_ids for g in scene.gt[i]):
+        return ({i: [(np.asarray(g.info["bbox_visib"], float), float(g.info.get("visib_fract", 1.0)))
+                     for g in scene.gt[i]] for i in im_ids}, VISIB_FROM_GT_INFO)
+    h, w = scene.read_rgb(im_ids[0]).shape[:2]
+    recs = rendered_gt_visibility(scene, models, im_ids, w, h)
+    return {i: [(np.asarray(v.bbox_visib, float), v.visib_fract) for v in recs[i]] for i in im_ids}, VISIB_RENDERED
+
+
+def gt_object_ids(scene, im_ids, known, hint: str = "") -> list[int]:
+    """The objects in the ground truth of ``im_ids``; an error names any not in ``known``."""
+    ids = sorted({g.obj_id for i in im_ids for g in scene.gt.get(i, [])})
+    unknown = [o for o in ids if o not in known]
+    if unknown:
+        raise UserError(f"{scene.root}: the ground truth has object(s) {unknown} that the bundle does not know "
+                        f"({list(known)}){hint}")
+    return ids
+
+
+def gt_instances_with_boxes(gts, boxes, min_visib: float = 0.0, below: bool = False) -> list[tuple]:
+    """(obj_id, box, visible fraction) of the ground-truth instances of one image whose visible
+    box is not empty, at least ``min_visib`` visible (or, with ``below``, less than it)."""
+    out = []
+    for g, (b, v) in zip(gts, boxes):
+        if b[2] > 1 and b[3] > 1 and ((v < min_visib) if below else (v >= min_visib)):
+            out.append((g.obj_id, b, v))
+    return out
+
+
+def evaluate(model_dir, scene_dir, json_path=None, boxes: str = "gt", mode: str = "regression",
+             bop_csv=None, max_frames: int | None = None, progress: bool = True,
+             detector_trees_weight: float | None = None) -> dict:
+    """``detector_trees_weight``: the trees' share of the distance for the detector's boxes in
+    place of the bundle's (``app.py tune-heads`` tries several)."""
+    from tracker.core.meshes import load_models
+    from tracker.evaluation.scoring import score_results, write_metrics_json
+    if boxes not in ("gt", "detector"):
+        raise UserError(f"--boxes must be gt or detector, not '{boxes}'")
+    from tracker.core.bop import check_output_file
+    for f, what in ((json_path, "--json"), (bop_csv, "--bop-csv")):
+        if f is not None:
+            check_output_file(f, what)
+    est = PoseEstimator(model_dir)
+    if detector_trees_weight is not None:
+        est.trees_weight["detector"] = float(detector_trees_weight)
+    detector = None
+    if boxes == "detector":
+        from tracker.runtime.detector import Detector
+        detector = Detector(est.bundle, threads=2)
+    scene = load_scene(scene_dir, require_gt=True)
+    im_ids = sorted(scene.gt)[:max_frames] if max_frames else sorted(scene.gt)
+    if not im_ids:
+        raise UserError(f"{scene_dir}: its ground truth (scene_gt.json) lists no images; nothing to evaluate")
+    mesh_dir = Path(model_dir) / "meshes"
+    gt_ids = gt_object_ids(scene, im_ids, est.obj_ids)
+    models = load_models(mesh_dir, gt_ids)
+    box_of, _ = gt_boxes(scene, models, im_ids)
+    results = []
+    all_dets, all_candidates, det_ms = [], [], []
+    t_all = 0.0
+    for im_id in tqdm(im_ids, desc=f"eval ({mode}, {boxes} boxes)", unit="img", disable=not progress):
+        img = scene.read_rgb(im_id)
+        t0 = time.perf_counter()
+        if detector is not None:
+            dets, candidates = detector.detect(img, candidates=True)
+            det_ms.append(1000 * (time.perf_counter() - t0))
+            all_dets.append(dets)
+            all_candidates.append(candidates)
+        else:
+            dets = [Detection(o, b, exact=True) for o, b, _ in gt_instances_with_boxes(scene.gt[im_id], box_of[im_id])]
+        poses = est.estimate(img, scene.K(im_id), dets, mode=mode)
+        dt = time.perf_counter() - t0
+        t_all += dt
+        results += [Estimate(0, im_id, p.obj_id, p.score, p.R, p.t, dt) for p in poses]
+    name = f"autopose-{est.method}" + ("" if mode == "regression" else f"-{mode}")
+    if bop_csv is None:
+        base = Path(json_path).parent if json_path else Path(".")
+        bop_csv = base / bop_csv_name(name)
+    write_results(bop_csv, results)
+    m = score_results(bop_csv, scene_dir, mesh_dir, models_info=mesh_dir / "models_info.json", im_ids=im_ids,
+                      scene_id=0, ms_per_image=1000 * t_all / len(im_ids))
+    if detector is not None:
+        from tracker.evaluation.detection_metrics import detection_ap
+        gts = [[(o, b) for o, b, _ in gt_instances_with_boxes(scene.gt[i], box_of[i], 0.1)] for i in im_ids]
+        ign = [[(o, b) for o, b, _ in gt_instances_with_boxes(scene.gt[i], box_of[i], 0.1, below=True)] for i in im_ids]
+        # AP as COCO defines it (the ranked candidates); the run-time detections (the manifest's
+        # threshold, one per object) alongside, as the operating point the poses were made from
+        m["detection"] = detection_ap(all_candidates, gts, est.obj_ids, ignore=ign)
+        from tracker.runtime.detector import CANDIDATE_MAX, CANDIDATE_PER_CLASS, CANDIDATE_SCORE
+        m["detection"]["protocol"] = (f"coco: candidates scoring >= {CANDIDATE_SCORE}, at most {CANDIDATE_PER_CLASS} "
+                                      f"per object and {CANDIDATE_MAX} per image")
+        m["detection"]["operating_point"] = detection_ap(all_dets, gts, est.obj_ids, ignore=ign)
+        m["detection"]["ms_per_image_median"] = float(np.median(det_ms))
+        m["detection"]["visibility_source"] = m.get("visibility_source")
+    m.update({"boxes": boxes, "mode": mode, "model": str(model_dir),
+              "bundle_manifest_sha256": est.bundle.manifest_sha256, "data": str(scene_dir), "max_frames": max_frames,
+              "bop_csv": str(bop_csv), "method": name})
+    if json_path:
+        write_metrics_json(json_path, m)
+    return m

@@ -1,0 +1,220 @@
+"""The 2D object detector at run time: letterbox -> ONNX (CenterNet-style maps) -> peaks ->
+boxes -> NMS, with the whole contract (input size, normalisation, stride, thresholds, classes)
+read from the bundle's manifest. Training (torch) lives in ``nets/detector.py`` and
+``detector_train.py``; both use the pre- and post-processing here, so there is one of each.
+
+Network output: one tensor (1, C + 4, h, w) at ``stride``: C per-class centre heatmaps
+(probabilities, sigmoid inside the graph), log(box width / stride), log(box height / stride),
+and the sub-cell offset (x, y) of the centre in cells.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, replace
+
+import cv2
+import numpy as np
+
+from tracker.core.errors import UserError
+from tracker.runtime.estimator import Detection
+from tracker.core.geometry import clip_box, iou_matrix
+
+
+# the ranked list that detection AP is measured on (COCO's protocol), not what the live loop uses
+CANDIDATE_SCORE = 0.01
+CANDIDATE_PER_CLASS = 10
+CANDIDATE_MAX = 100
+
+
+BOX_KINDS = ("visible", "amodal")  # what a detector's boxes cover (DetectorSpec.boxes)
+
+
+@dataclass
+class DetectorSpec:
+    classes: list[int]               # object id of each heatmap channel
+    input_w: int = 320
+    input_h: int = 240
+    stride: int = 8
+    mean: float = 0.5                # x = (rgb / 255 - mean) / std
+    std: float = 0.25
+    score_thresh: float = 0.25
+    nms_iou: float = 0.5
+    max_per_class: int = 1           # LM-O: one instance of each object per image
+    max_dets: int = 32
+    pad_value: int = 114
+    file: str = "detector.onnx"
+    boxes: str = "visible"           # what a box covers: the visible part, or the whole object ("amodal")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "DetectorSpec":
+        known = {k: d[k] for k in cls.__dataclass_fields__ if k in d}
+        return cls(**known)
+
+
+@dataclass
+class Letterbox:
+    sx: float  # network-input pixels per frame pixel (x, y: the resized size is rounded)
+    sy: float
+    pad_x: int
+    pad_y: int
+
+    def to_frame(self, boxes: np.ndarray) -> np.ndarray:
+        """(N, 4) x, y, w, h in network-input pixels -> frame pixels."""
+        b = np.asarray(boxes, np.float64).copy()
+        b[:, 0] = (b[:, 0] - self.pad_x) / self.sx
+        b[:, 1] = (b[:, 1] - self.pad_y) / self.sy
+        b[:, 2] /= self.sx
+        b[:, 3] /= self.sy
+        return b
+
+    def to_input(self, boxes: np.ndarray) -> np.ndarray:
+        b = np.asarray(boxes, np.float64).copy()
+        b[:, 0] = b[:, 0] * self.sx + self.pad_x
+        b[:, 1] = b[:, 1] * self.sy + self.pad_y
+        b[:, 2] *= self.sx
+        b[:, 3] *= self.sy
+        return b
+
+
+def letterbox(image: np.ndarray, width: int, height: int, pad_value: int = 114) -> tuple[np.ndarray, Letterbox]:
+    """Scale ``image`` uniformly to fit (width, height), centred, padded with ``pad_value``;
+    frames of any size or aspect map to the network input and back."""
+    h, w = image.shape[:2]
+    s = min(width / w, height / h)
+    nw, nh = max(1, round(w * s)), max(1, round(h * s))
+    px, py = (width - nw) // 2, (height - nh) // 2
+    out = np.full((height, width, 3), pad_value, np.uint8)
+    interp = cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR
+    out[py:py + nh, px:px + nw] = cv2.resize(image, (nw, nh), interpolation=interp) if (nw, nh) != (w, h) else image
+    return out, Letterbox(nw / w, nh / h, px, py)
+
+
+def normalise(images_u8: np.ndarray, spec: DetectorSpec) -> np.ndarray:
+    """(N, H, W, 3) uint8 RGB -> (N, 3, H, W) float32 network input."""
+    x = images_u8.astype(np.float32).transpose(0, 3, 1, 2) / 255.0
+    return (x - spec.mean) / spec.std
+
+
+def peaks(heat: np.ndarray, k: int, thresh: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Local maxima (3x3) of (C, h, w) heatmaps above ``thresh``, best ``k`` first:
+    (class index, y, x, score)."""
+    C = heat.shape[0]
+    dil = np.stack([cv2.dilate(heat[c], np.ones((3, 3), np.uint8)) for c in range(C)])
+    keep = (heat >= dil) & (heat >= thresh)
+    c, y, x = np.nonzero(keep)
+    s = heat[c, y, x]
+    order = np.argsort(-s, kind="stable")[:k]
+    return c[order], y[order], x[order], s[order]
+
+
+def decode(maps: np.ndarray, spec: DetectorSpec, lb: Letterbox | None = None,
+           frame_size: tuple[int, int] | None = None) -> list[Detection]:
+    """(C + 4, h, w) network output -> detections in frame pixels (x, y, w, h), best first:
+    peaks, box sizes and offsets, class-wise NMS, at most ``max_per_class`` per object."""
+    C = len(spec.classes)
+    if maps.ndim != 3 or maps.shape[0] != C + 4:
+        raise UserError(f"detector output has shape {maps.shape}; expected ({C + 4}, h, w)")
+    ci, yi, xi, sc = peaks(maps[:C], 4 * spec.max_dets, spec.score_thresh)
+    if len(sc) == 0:
+        return []
+    lw, lh, ox, oy = (maps[C + j, yi, xi] for j in range(4))
+    cx = (xi + ox) * spec.stride
+    cy = (yi + oy) * spec.stride
+    bw = np.exp(np.clip(lw, -8, 8)) * spec.stride
+    bh = np.exp(np.clip(lh, -8, 8)) * spec.stride
+    boxes = np.stack([cx - bw / 2, cy - bh / 2, bw, bh], 1)
+    if lb is not None:
+        boxes = lb.to_frame(boxes)
+    if frame_size is not None:
+        boxes = clip_box(boxes, *frame_size)
+    ok = (boxes[:, 2] > 1) & (boxes[:, 3] > 1)  # boxes clipped to nothing never take a slot
+    boxes, ci, sc = boxes[ok], ci[ok], sc[ok]
+    out: list[Detection] = []
+    for c in np.unique(ci):
+        m = np.nonzero(ci == c)[0]
+        # one per object: the best peak, which NMS would keep first (ties: the first, as NMS)
+        keep = [int(np.argmax(sc[m]))] if spec.max_per_class == 1 else nms(boxes[m], sc[m], spec.nms_iou)[:spec.max_per_class]
+        out += [Detection(int(spec.classes[c]), boxes[m[j]], float(sc[m[j]])) for j in keep]
+    out.sort(key=lambda d: -d.score)
+    return out[:spec.max_dets]
+
+
+def nms(boxes: np.ndarray, scores: np.ndarray, iou: float) -> list[int]:
+    """Greedy non-maximum suppression; indices kept, best score first."""
+    order = list(np.argsort(-np.asarray(scores), kind="stable"))
+    keep = []
+    ious = iou_matrix(boxes, boxes)
+    while order:
+        i = order.pop(0)
+        keep.append(int(i))
+        order = [j for j in order if ious[i, j] <= iou]
+    return keep
+
+
+class Detector:
+    """The bundle's detector. Refuses, at load time, a detector whose classes are not objects
+    of the bundle or whose output channels do not match its classes."""
+
+    def __init__(self, bundle, threads: int = 1):
+        from tracker.runtime.estimator import make_session
+        m = bundle.manifest
+        if not m.has_detector:
+            raise UserError(f"{bundle.root}: this bundle has no detector; train one with 'app.py train-detector'")
+        self.spec = DetectorSpec.from_dict(m.detector)
+        known = set(m.obj_ids)
+        bad = [c for c in self.spec.classes if c not in known]
+        if bad:
+            raise UserError(f"{bundle.root}: the detector's classes {bad} are not objects of this bundle "
+                            f"({sorted(known)}); retrain the detector for these objects")
+        self.session = make_session(bundle.path("detector"), threads)
+        out = self.session.get_outputs()[0].shape
+        if len(out) != 4 or out[1] != len(self.spec.classes) + 4:
+            raise UserError(f"{bundle.root}: detector.onnx has {out[1] if len(out) > 1 else '?'} output channels, "
+                            f"its manifest lists {len(self.spec.classes)} classes (+4 box channels)")
+        self.input_name = self.session.get_inputs()[0].name
+
+    def __call__(self, image_rgb: np.ndarray) -> list[Detection]:
+        """The run-time detections: the manifest's threshold, at most ``max_per_class`` each."""
+        return self.detect(image_rgb)[0]
+
+    def detect(self, image_rgb: np.ndarray, candidates: bool = False) -> tuple[list[Detection], list[Detection]]:
+        """The run-time detections and (with ``candidates``) the ranked list that COCO's AP
+        is defined on: every peak scoring at least ``CANDIDATE_SCORE``, up to
+        ``CANDIDATE_PER_CLASS`` per object and ``CANDIDATE_MAX`` per image (pycocotools keeps
+        100 per image), from the same network pass."""
+        h, w = image_rgb.shape[:2]
+        img, lb = letterbox(image_rgb, self.spec.input_w, self.spec.input_h, self.spec.pad_value)
+        maps = self.session.run(None, {self.input_name: normalise(img[None], self.spec)})[0][0]
+        if not np.all(np.isfinite(maps)):
+            return [], []  # NaN output: no detections rather than garbage boxes
+        dets = decode(maps, self.spec, lb, (w, h))
+        if not candidates:
+            return dets, []
+        wide = replace(self.spec, score_thresh=min(CANDIDATE_SCORE, self.spec.score_thresh),
+                       max_per_class=max(CANDIDATE_PER_CLASS, self.spec.max_per_class),
+                       max_dets=max(CANDIDATE_MAX, self.spec.max_dets))
+        return dets, decode(maps, wide, lb, (w, h))
+
+
+def float_detector(path, use: str):
+    """(bundle, its detector's spec, its manifest entry, its ONNX file) of a bundle whose
+    detector is a single float network (one that can join others, or be fine-tuned from);
+    ``use``: what to do instead, said when it is joined or quantised."""
+    from tracker.core.bundle import open_bundle
+    b = open_bundle(path)
+    if not b.manifest.has_detector:
+        raise UserError(f"{path}: this bundle has no detector; train one with 'app.py train-detector'")
+    d = b.manifest.detector
+    if "ensemble" in d or "int8" in d:
+        raise UserError(f"{path}: its detector is joined or quantised already; {use}")
+    return b, DetectorSpec.from_dict(d), d, b.path("detector")
+
+
+def run_graph(path, x: np.ndarray) -> np.ndarray:
+    """A detector graph's raw outputs for a batch of network inputs, one image at a time."""
+    from tracker.runtime.estimator import make_session
+    s = make_session(path, threads=2)
+    name = s.get_inputs()[0].name
+    return np.concatenate([s.run(None, {name: x[i:i + 1]})[0] for i in range(len(x))])
