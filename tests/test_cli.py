@@ -29,17 +29,17 @@ def test_help_lists_the_commands():
 
 
 def test_join_detectors_bad_input_is_a_one_line_error(tmp_path):
-    p = run("join-detectors", "--model", REPO / "models" / "lmo", "--from", tmp_path, "--out", tmp_path / "j")
+    p = run("lab", "join-detectors", "--model", REPO / "models" / "lmo", "--from", tmp_path, "--out", tmp_path / "j")
     assert_one_line_error(p)
     assert "joined or quantised already" in p.stderr  # the bundled detector is a joined one
     assert not (tmp_path / "j").exists()
 
 
 def test_tune_heads_bad_input_is_a_one_line_error(tmp_path):
-    p = run("tune-heads", "--model", REPO / "models" / "lmo", "--data", tmp_path, "--out", tmp_path / "t")
+    p = run("lab", "tune-heads", "--model", REPO / "models" / "lmo", "--data", tmp_path, "--out", tmp_path / "t")
     assert_one_line_error(p)
     assert "no BOP scene folders" in p.stderr and not (tmp_path / "t").exists()
-    p = run("tune-heads", "--model", REPO / "models" / "lmo", "--data", tmp_path, "--weights", "2")
+    p = run("lab", "tune-heads", "--model", REPO / "models" / "lmo", "--data", tmp_path, "--weights", "2")
     assert_one_line_error(p)
     assert "[0, 1]" in p.stderr
 
@@ -51,7 +51,7 @@ def test_bad_bundle_and_bad_source_are_one_line_errors(tmp_path, data_dir):
     p = run("eval", "--model", tmp_path, "--data", data_dir / "lmo" / "dev", "--json", tmp_path / "m.json")
     assert_one_line_error(p)
     assert "manifest.json" in p.stderr
-    p = run("refit-heads", "--model", REPO / "models" / "lmo", "--data", tmp_path, "--out", tmp_path / "b")
+    p = run("lab", "refit-heads", "--model", REPO / "models" / "lmo", "--data", tmp_path, "--out", tmp_path / "b")
     assert_one_line_error(p)
     assert "synth_config.json" in p.stderr or "train" in p.stderr  # no training data (or no torch)
     assert not (tmp_path / "b").exists()
@@ -83,7 +83,7 @@ def test_calibrate_errors(tmp_path, data_dir):
 
 def test_preview_on_a_broken_scene(tmp_path, data_dir):
     (tmp_path / "rgb").mkdir()
-    p = run("preview", "--data", tmp_path, "--models", data_dir / "lmo" / "models")
+    p = run("lab", "preview", "--data", tmp_path, "--models", data_dir / "lmo" / "models")
     assert_one_line_error(p)
     assert "scene_camera.json" in p.stderr
 
@@ -92,7 +92,7 @@ def test_models_info_command(tmp_path, data_dir):
     models = tmp_path / "models"
     models.mkdir()
     (models / "obj_000001.ply").symlink_to(data_dir / "lmo" / "models" / "obj_000001.ply")
-    p = run("models-info", "--models", models, "--out", tmp_path / "models_info.json")
+    p = run("lab", "models-info", "--models", models, "--out", tmp_path / "models_info.json")
     assert p.returncode == 0, p.stderr
     assert "obj 1: diameter 102.10 mm, 0 discrete symmetries" in p.stdout
 
@@ -111,7 +111,7 @@ def test_numeric_flags_are_checked_before_any_work(tmp_path, data_dir):
     for args in (["eval", "--model", "models/lmo", "--data", dev, "--json", tmp_path / "m.json", "--max-frames", 0],
                  ["track", "--source", dev, "--detect-every", 0],
                  ["train-detector", "--data", tmp_path, "--model", "models/lmo", "--minutes", -5],
-                 ["pack-scene", "--data", dev, "--out", tmp_path / "r", "--quality", 200],
+                 ["lab", "pack-scene", "--data", dev, "--out", tmp_path / "r", "--quality", 200],
                  ["calibrate", "--images", "x", "--board", "9x6", "--square", "nan", "--out", tmp_path / "c.yaml"],
                  ["synth", "--models", tmp_path, "--out", tmp_path / "s", "--images", 2, "--obj-ids", "1,abc"],
                  ["synth", "--models", tmp_path, "--out", tmp_path / "s", "--images", 2, "--seed", -5]):
@@ -122,7 +122,7 @@ def test_numeric_flags_are_checked_before_any_work(tmp_path, data_dir):
 
 def test_an_unwritable_output_is_a_one_line_error(tmp_path, data_dir):
     (tmp_path / "taken").write_text("a file, not a folder")
-    p = run("pack-scene", "--data", data_dir / "lmo" / "dev", "--out", tmp_path / "taken" / "rec")
+    p = run("lab", "pack-scene", "--data", data_dir / "lmo" / "dev", "--out", tmp_path / "taken" / "rec")
     assert_one_line_error(p)
     assert "Not a directory" in p.stderr and "taken" in p.stderr
 
@@ -138,7 +138,7 @@ def test_outputs_that_cannot_be_written_are_refused_before_the_work(tmp_path, da
               "--json", tmp_path / "folder"], "is a folder"),
             (["synth", "--models", data_dir / "lmo" / "models", "--out", tmp_path / "s", "--images", 2,
               "--preview", tmp_path / "folder"], "name a .png or .jpg"),
-            (["pack-scene", "--data", dev, "--out", dev], "is the scene itself")):
+            (["lab", "pack-scene", "--data", dev, "--out", dev], "is the scene itself")):
         p = run(*args, timeout=60)
         assert_one_line_error(p)
         assert said in p.stderr, p.stderr
@@ -174,7 +174,8 @@ def test_track_on_a_scene_with_objects_the_bundle_does_not_know(tmp_path, data_d
     import pytest
 
     from tracker.core.errors import UserError
-    from tracker.runtime.loop import TrackConfig, run_track
+    from tracker.evaluation.track import track
+    from tracker.runtime.loop import TrackConfig
     dev = data_dir / "lmo" / "dev"
     scene = tmp_path / "scene"
     (scene / "rgb").mkdir(parents=True)
@@ -185,5 +186,5 @@ def test_track_on_a_scene_with_objects_the_bundle_does_not_know(tmp_path, data_d
     (scene / "scene_camera.json").write_text(json.dumps({"3": cam}))
     (scene / "scene_gt.json").write_text(json.dumps({"3": gt}))
     with pytest.raises(UserError, match=r"object\(s\) \[99\].*--boxes detector"):
-        run_track(TrackConfig(str(scene), str(REPO / "models" / "lmo"), tmp_path / "run", overlay=False),
+        track(TrackConfig(str(scene), str(REPO / "models" / "lmo"), tmp_path / "run", overlay=False),
                   log=lambda m: None)

@@ -436,7 +436,7 @@ def test_detector_classes_must_match_bundle(tiny_detector_bundle, tmp_path):
 
 def test_box_schedule_runs_detector_every_n():
     from tracker.runtime.estimator import PoseEstimate
-    from tracker.runtime.loop import BoxSchedule
+    from tracker.runtime.pipeline import BoxSchedule
     calls = []
 
     def fake_detector(rgb):
@@ -467,7 +467,7 @@ def test_box_schedule_runs_detector_every_n():
 
 def test_box_schedule_counts_only_the_tracked_objects():
     from tracker.runtime.estimator import PoseEstimate
-    from tracker.runtime.loop import BoxSchedule
+    from tracker.runtime.pipeline import BoxSchedule
 
     def two_objects(rgb):
         return [Detection(1, np.array([100, 100, 50, 50.]), 0.9), Detection(5, np.array([300, 100, 50, 50.]), 0.8)]
@@ -484,13 +484,14 @@ def test_box_schedule_counts_only_the_tracked_objects():
 
 def test_loop_with_the_detector_on_the_bundled_recording(tiny_detector_bundle, tmp_path):
     from tracker.core.bop import read_results
-    from tracker.runtime.loop import TrackConfig, run_track
+    from tracker.evaluation.track import track
+    from tracker.runtime.loop import TrackConfig
     from tracker.core.paths import DEMO_RECORDING
     out = tmp_path / "run"
-    s = run_track(TrackConfig(str(DEMO_RECORDING), str(tiny_detector_bundle), out, rerun="off", max_frames=3,
+    s = track(TrackConfig(str(DEMO_RECORDING), str(tiny_detector_bundle), out, rerun="off", max_frames=3,
                               boxes="detector", detect_every=2, smooth=0.5), log=lambda m: None)
-    assert s["frames"] == 3 and s["boxes"] == "detector" and s["detector_frames"] >= 2
-    assert s["accuracy"]["n_gt"] > 20  # scored against the recording's ground truth
+    assert s.frames == 3 and s.boxes == "detector" and s.detector_frames >= 2
+    assert s.accuracy["n_gt"] > 20  # scored against the recording's ground truth
     assert len((out / "timings.csv").read_text().splitlines()) == 4
     assert all(e.im_id in (3, 8, 17) for e in read_results(out / "poses.csv"))
 

@@ -11,16 +11,17 @@ import rerun as rr
 
 from tracker.core.bop import read_results
 from tracker.core.errors import UserError
-from tracker.runtime.loop import TrackConfig, run_track
+from tracker.evaluation.track import track
+from tracker.runtime.loop import TrackConfig
 from tracker.runtime.sinks import RERUN_GRPC_PORT, STAGES, RerunSink, port_taken
 from tracker.runtime.sources import CameraSource, open_source
 
 
 def test_track_on_a_bop_replay_writes_valid_files(tiny_bundle, data_dir, tmp_path):
     out = tmp_path / "run"
-    s = run_track(TrackConfig(str(data_dir / "lmo" / "dev"), str(tiny_bundle), out, rerun="save", max_frames=3),
+    s = track(TrackConfig(str(data_dir / "lmo" / "dev"), str(tiny_bundle), out, rerun="save", max_frames=3),
                   log=lambda m: None)
-    assert s["frames"] == 3 and s["poses"] > 10 and not s["interrupted"]
+    assert s.frames == 3 and s.poses > 10 and not s.interrupted
     ests = read_results(out / "poses.csv")
     assert {e.im_id for e in ests} == {3, 8, 17} and all(e.t[2] > 0 for e in ests)
     rows = (out / "timings.csv").read_text().splitlines()
@@ -125,13 +126,13 @@ def test_looping_replay_numbers_frames_and_reports_memory(tiny_bundle, data_dir,
     for i in (3, 8):
         shutil.copy(data_dir / "lmo" / "dev" / "rgb" / f"{i:06d}.png", folder)
     out = tmp_path / "run"
-    s = run_track(TrackConfig(str(folder), str(tiny_bundle), out, calib=str(Path(__file__).resolve().parents[1] / "calib" / "lmo_kinect.yml"), rerun="off",
+    s = track(TrackConfig(str(folder), str(tiny_bundle), out, calib=str(Path(__file__).resolve().parents[1] / "calib" / "lmo_kinect.yml"), rerun="off",
                               max_frames=5, loop=True), log=lambda m: None)
-    assert s["frames"] == 5 and s["looped"] and s["rss_mb"]["current"] > 0
+    assert s.frames == 5 and s.looped and s.rss_mb["current"] > 0
     rows = (out / "timings.csv").read_text().splitlines()[1:]
     assert [int(r.split(",")[0]) for r in rows] == [0, 1, 2, 3, 4]
     with pytest.raises(UserError, match="camera cannot be looped"):
-        run_track(TrackConfig("0", str(tiny_bundle), tmp_path / "cam", loop=True), log=lambda m: None)
+        track(TrackConfig("0", str(tiny_bundle), tmp_path / "cam", loop=True), log=lambda m: None)
 
 
 def _two_frames_and_a_corrupt_one(data_dir, folder):
@@ -147,7 +148,7 @@ def test_a_run_that_fails_midway_keeps_its_summary(tiny_bundle, data_dir, tmp_pa
     calib = _two_frames_and_a_corrupt_one(data_dir, tmp_path / "imgs")
     out = tmp_path / "run"
     with pytest.raises(UserError, match="unreadable image"):
-        run_track(TrackConfig(str(tmp_path / "imgs"), str(tiny_bundle), out, calib=calib, rerun="off"),
+        track(TrackConfig(str(tmp_path / "imgs"), str(tiny_bundle), out, calib=calib, rerun="off"),
                   log=lambda m: None)
     s = json.loads((out / "summary.json").read_text())
     assert s["frames"] == 2 and "unreadable image" in s["error"] and not s["interrupted"]
@@ -167,16 +168,16 @@ def test_an_interrupted_run_writes_its_summary_without_scoring(tiny_bundle, data
             os.kill(os.getpid(), signal.SIGINT)
     monkeypatch.setattr(sinks.CsvSink, "write", write_then_interrupt)
     out = tmp_path / "run"
-    s = run_track(TrackConfig(str(data_dir / "lmo" / "dev"), str(tiny_bundle), out, rerun="off", max_frames=4),
+    s = track(TrackConfig(str(data_dir / "lmo" / "dev"), str(tiny_bundle), out, rerun="off", max_frames=4),
                   log=lambda m: None)
-    assert s["interrupted"] and s["frames"] == 2 and "accuracy" not in s and s["error"] is None
+    assert s.interrupted and s.frames == 2 and s.accuracy is None and s.error is None
     assert json.loads((out / "summary.json").read_text())["frames"] == 2
 
 
 def test_finishing_a_run_defers_the_first_interrupt():
     import os
     import signal
-    from tracker.runtime.loop import _Deferred
+    from tracker.runtime.signals import Deferred as _Deferred
     said = []
     with _Deferred(said.append, "scoring") as d:
         os.kill(os.getpid(), signal.SIGINT)  # the first: noted, not raised
@@ -190,7 +191,7 @@ def test_finishing_a_run_defers_the_first_interrupt():
 
 def test_unknown_object_ids_are_refused(tiny_bundle, data_dir, tmp_path):
     with pytest.raises(UserError, match="--obj-ids 99: not objects of"):
-        run_track(TrackConfig(str(data_dir / "lmo" / "dev"), str(tiny_bundle), tmp_path / "run", obj_ids=[1, 99]),
+        track(TrackConfig(str(data_dir / "lmo" / "dev"), str(tiny_bundle), tmp_path / "run", obj_ids=[1, 99]),
                   log=lambda m: None)
     assert not (tmp_path / "run").exists()
 

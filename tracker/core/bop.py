@@ -477,3 +477,13 @@ def read_results(path, known_obj_ids=None) -> list[Estimate]:
             times.setdefault(key, (tm, line))
             out.append(Estimate(scene_id, im_id, obj_id, score, R, t, tm))
     return out
+
+
+def gt_instances_with_boxes(gts, boxes, min_visib: float = 0.0, below: bool = False) -> list[tuple]:
+    """(obj_id, box, visible fraction) of the ground-truth instances of one image whose visible
+    box is not empty, at least ``min_visib`` visible (or, with ``below``, less than it)."""
+    out = []
+    for g, (b, v) in zip(gts, boxes):
+        if b[2] > 1 and b[3] > 1 and ((v < min_visib) if below else (v >= min_visib)):
+            out.append((g.obj_id, b, v))
+    return out

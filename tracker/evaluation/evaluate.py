@@ -9,43 +9,13 @@ from tqdm import tqdm
 
 from tracker.core.bop import Estimate, load_scene, write_results
 from tracker.core.errors import UserError
+from tracker.evaluation.ground_truth import gt_boxes, gt_instances_with_boxes, gt_object_ids
 from tracker.runtime.estimator import Detection, PoseEstimator
 
 
 def bop_csv_name(method: str, dataset: str = "lmo", split: str = "test") -> str:
     """BOP's rule for result files: METHOD_DATASET-SPLIT.csv (no '_' inside METHOD)."""
     return f"{method.replace('_', '-')}_{dataset}-{split}.csv"
-
-
-def gt_boxes(scene, models, im_ids) -> tuple[dict[int, list], str]:
-    """Visible GT boxes per image: scene_gt_info's bbox_visib, else rendered from the known objects."""
-    from tracker.evaluation.scoring import VISIB_FROM_GT_INFO, VISIB_RENDERED, rendered_gt_visibility
-    if all("bbox_visib" in g.info for i in im_ids for g in scene.gt[i]):
-        return ({i: [(np.asarray(g.info["bbox_visib"], float), float(g.info.get("visib_fract", 1.0)))
-                     for g in scene.gt[i]] for i in im_ids}, VISIB_FROM_GT_INFO)
-    h, w = scene.read_rgb(im_ids[0]).shape[:2]
-    recs = rendered_gt_visibility(scene, models, im_ids, w, h)
-    return {i: [(np.asarray(v.bbox_visib, float), v.visib_fract) for v in recs[i]] for i in im_ids}, VISIB_RENDERED
-
-
-def gt_object_ids(scene, im_ids, known, hint: str = "") -> list[int]:
-    """The objects in the ground truth of ``im_ids``; an error names any not in ``known``."""
-    ids = sorted({g.obj_id for i in im_ids for g in scene.gt.get(i, [])})
-    unknown = [o for o in ids if o not in known]
-    if unknown:
-        raise UserError(f"{scene.root}: the ground truth has object(s) {unknown} that the bundle does not know "
-                        f"({list(known)}){hint}")
-    return ids
-
-
-def gt_instances_with_boxes(gts, boxes, min_visib: float = 0.0, below: bool = False) -> list[tuple]:
-    """(obj_id, box, visible fraction) of the ground-truth instances of one image whose visible
-    box is not empty, at least ``min_visib`` visible (or, with ``below``, less than it)."""
-    out = []
-    for g, (b, v) in zip(gts, boxes):
-        if b[2] > 1 and b[3] > 1 and ((v < min_visib) if below else (v >= min_visib)):
-            out.append((g.obj_id, b, v))
-    return out
 
 
 def evaluate(model_dir, scene_dir, json_path=None, boxes: str = "gt", mode: str = "regression",

@@ -1,0 +1,411 @@
+"""The user's jobs: ``app.py COMMAND`` (``app.py --help`` lists them)."""
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+from tracker.cli.args import (add_precision, add_regressor_budget, finite_float, fraction, id_list, nonnegative_int,
+                              positive_float, positive_int)
+from tracker.core.errors import UserError
+
+
+def _default_run_dir(name: str) -> Path:
+    from tracker.core.paths import REPO
+    return REPO / "runs" / f"{name}-{time.strftime('%Y%m%d-%H%M%S')}"
+
+
+def _print_run(s, out: Path) -> None:
+    st = s.stages_ms
+    print(f"{s.frames} frames, {s.poses} poses, {s.fps} fps end to end"
+          + (" (interrupted)" if s.interrupted else "") + (f", {s.dropped_frames} frames dropped" if s.dropped_frames else ""))
+    print("median ms per frame: " + ", ".join(f"{k} {v['median']:.1f}" for k, v in st.items() if v["median"] is not None))
+    if s.accuracy:
+        from tracker.evaluation.report import fmt_num
+        a = s.accuracy
+        print(f"accuracy against the ground truth ({s.boxes} boxes, {a['n_gt']} instances): ADD(I) "
+              f"{fmt_num(a['add_recall'])}, AR_MSSD {fmt_num(a['ar_mssd'])}, AR_MSPD {fmt_num(a['ar_mspd'])}, "
+              f"median RE {fmt_num(a['re_median_deg'], 1)} deg, median TE {fmt_num(a['te_median_mm'], 1)} mm")
+    print(f"run folder: {out} (poses.csv, timings.csv, summary.json)")
+    if s.recording:
+        print(f"rerun recording: {s.recording}  (open it with: .venv/bin/rerun {s.recording}, "
+              f"or headless: .venv/bin/rerun --serve-web {s.recording})")
+    if s.camera_reconnects:
+        print(f"warning: the camera dropped out and was reopened {s.camera_reconnects} time(s)", file=sys.stderr)
+    if s.camera_lost:
+        print("warning: the camera stopped delivering frames (unplugged?); the logs above are complete", file=sys.stderr)
+    if s.video_truncated:
+        print("warning: the video ended before its declared length (truncated file?)", file=sys.stderr)
+
+
+def _print_validation(out, manifest) -> None:
+    v = manifest.validation_synthetic
+    print(f"wrote {out}: synthetic validation median RE {v['regression']['re_median_deg']:.1f} deg "
+          f"(AAE {v['aae']['re_median_deg']:.1f}), median TE {v['regression']['te_median_mm']:.1f} mm "
+          f"(AAE {v['aae']['te_median_mm']:.1f})")
+
+
+def cmd_demo(args) -> int:
+    """The bundled recording (demo/lmo_dev: the LM-O dev frames as a video, with their ground
+    truth) through the full pipeline with models/lmo: detector -> crops -> encoder ->
+    regressors -> overlay -> rerun; accuracy against the recording's ground truth."""
+    from tracker.core.bundle import open_bundle
+    from tracker.core.paths import DEMO_RECORDING, REPO
+    from tracker.evaluation.track import track
+    from tracker.runtime.loop import TrackConfig
+    out = Path(args.out) if args.out else _default_run_dir("demo")
+    bundle = REPO / "models" / "lmo"
+    if not (DEMO_RECORDING / "rgb.avi").is_file():
+        raise UserError(f"the bundled recording {DEMO_RECORDING} is missing; restore it with git checkout")
+    boxes = "detector" if open_bundle(bundle).manifest.has_detector else "gt"
+    print(f"demo: {DEMO_RECORDING.relative_to(REPO)} (LM-O dev frames) -> "
+          f"{'detector' if boxes == 'detector' else 'ground-truth boxes (no detector in the bundle)'} -> "
+          f"models/lmo -> poses, overlay, rerun", file=sys.stderr)
+    s = track(TrackConfig(str(DEMO_RECORDING), str(bundle), out, rerun="save", max_frames=args.max_frames,
+                          boxes=boxes), log=lambda m: print(m, file=sys.stderr))
+    _print_run(s, out)
+    return 130 if s.interrupted else 0
+
+
+def cmd_track(args) -> int:
+    from tracker.evaluation.track import track
+    from tracker.runtime.loop import TrackConfig
+    out = Path(args.out) if args.out else _default_run_dir("track")
+    cfg = TrackConfig(args.source, args.model, out, args.calib, args.rerun, args.max_frames, args.realtime,
+                      not args.no_overlay, args.boxes, detect_every=args.detect_every, smooth=args.smooth,
+                      loop=args.loop)
+    s = track(cfg, log=lambda m: print(m, file=sys.stderr))
+    _print_run(s, out)
+    return 130 if s.interrupted else 0
+
+
+def cmd_bench(args) -> int:
+    from tracker.core.bop import check_output_file, write_json
+    from tracker.evaluation.bench import bench
+    from tracker.runtime.loop import TrackConfig
+    check_output_file(args.json, "--json")
+    cfg = TrackConfig(args.source, args.model, Path(args.out) if args.out else None, args.calib, args.rerun, args.frames,
+                      False, not args.no_overlay, args.boxes, detect_every=args.detect_every, obj_ids=args.obj_ids)
+    res, s = bench(cfg, skip_first=args.skip_first, log=lambda m: print(m, file=sys.stderr))
+    write_json(args.json, res)
+    print(f"{res['frames']} frames, {res['objects_per_frame']} objects/frame: {res['fps']} fps (median), "
+          f"{res['ms_per_object']} ms per object (crop + encoder + regressors)")
+    print("median / p95 ms: " + ", ".join(f"{k} {v['median']:.1f}/{v['p95']:.1f}" for k, v in res["stages_ms"].items()))
+    if s.video_truncated:
+        print("warning: the video ended before its declared length (truncated file?)", file=sys.stderr)
+    print(("INTERRUPTED after " if s.interrupted else "") + f"{res['frames']} frames: wrote {args.json}")
+    return 130 if s.interrupted else 0
+
+
+def cmd_calibrate(args) -> int:
+    from tracker.core.calibration import calibrate, parse_board
+    from tracker.core.camera import write_camera
+    if not args.images and args.source is None:
+        raise UserError("calibrate needs --images GLOB or --source SRC")
+    board = parse_board(args.board)
+    if Path(args.out).is_dir():
+        raise UserError(f"--out {args.out} is a folder; give the camera file to write, e.g. {Path(args.out) / 'camera.yaml'}")
+    res = calibrate(board, args.square, images=args.images, source=args.source, every=args.every,
+                    log=lambda m: print(m, file=sys.stderr))
+    write_camera(args.out, res.camera, {"avg_reprojection_error": res.rms_px, "nframes": len(res.used),
+                                        "board_width": board[0], "board_height": board[1],
+                                        "square_size_mm": args.square})
+    K = res.camera.K
+    print(f"{len(res.used)} views used, {len(res.skipped)} skipped; RMS re-projection error "
+          f"{res.rms_px:.3f} px; fx {K[0, 0]:.2f} fy {K[1, 1]:.2f} cx {K[0, 2]:.2f} cy {K[1, 2]:.2f}")
+    print(f"wrote {args.out}")
+    return 0
+
+
+def cmd_imu(args) -> int:
+    from tracker.evaluation.imu import compare, read_imu_log, read_run, write_report
+    run = read_run(args.run, obj_id=args.obj_id)
+    log = read_imu_log(args.imu, max_gap_s=args.max_gap)
+    rep = compare(run, log, mode=args.mode, time_offset_s=args.time_offset, max_offset_s=args.max_offset)
+    files = write_report(args.out, rep)
+    print(f"{rep['n_pairs']} frame/IMU pairs, clock offset {rep['time_offset_s'] * 1000:.1f} ms: RE mean "
+          f"{rep['re_mean_deg']:.2f} deg, median {rep['re_median_deg']:.2f}, p90 {rep['re_p90_deg']:.2f}, "
+          f"max {rep['re_max_deg']:.2f} ({args.mode} mode)")
+    print("wrote " + ", ".join(str(p) for p in files.values()))
+    return 0
+
+
+def cmd_eval(args) -> int:
+    from tracker.evaluation.evaluate import evaluate
+    m = evaluate(args.model, args.data, args.json, boxes=args.boxes, mode=args.mode, bop_csv=args.bop_csv,
+                 max_frames=args.max_frames)
+    from tracker.evaluation.report import fmt_num
+    print(f"{m['method']} on {m['n_gt']} instances ({m['boxes']} boxes): ADD(I) {fmt_num(m['add_recall'])}, "
+          f"AR_MSSD {fmt_num(m['ar_mssd'])}, AR_MSPD {fmt_num(m['ar_mspd'])}, RE median {fmt_num(m['re_median_deg'], 1)} "
+          f"deg, TE median {fmt_num(m['te_median_mm'], 1)} mm, {fmt_num(m['ms_per_image'], 1)} ms/image")
+    print(f"{'obj':>5} {'ADD(I)':>7} {'MSSD':>6} {'MSPD':>6} {'RE':>6} {'TE':>7}")
+    for k, v in sorted(m["per_object"].items(), key=lambda kv: int(kv[0])):
+        if v.get("add_recall") is None:
+            continue
+        print(f"{k:>5} {fmt_num(v['add_recall']):>7} {fmt_num(v['ar_mssd']):>6} {fmt_num(v['ar_mspd']):>6} "
+              f"{fmt_num(v['re_median_deg'], 1):>6} {fmt_num(v['te_median_mm'], 1):>7}")
+    d = m.get("detection")
+    if d:
+        op = d["operating_point"]
+        print(f"detector: AP {fmt_num(d['ap'])}, AP50 {fmt_num(d['ap50'])}, recall50 {fmt_num(d['recall50'])} "
+              f"(COCO: ranked candidates); as the loop runs it (one per object, manifest threshold): AP "
+              f"{fmt_num(op['ap'])}, AP50 {fmt_num(op['ap50'])}, recall50 {fmt_num(op['recall50'])}; "
+              f"{d['ms_per_image_median']:.1f} ms/image (median)")
+        print(f"{'obj':>5} {'AP':>6} {'AP50':>6} {'R50':>6}")
+        for k, v in sorted(d["per_object"].items(), key=lambda kv: int(kv[0])):
+            if v["n_gt"]:
+                print(f"{k:>5} {fmt_num(v['ap']):>6} {fmt_num(v['ap50']):>6} {fmt_num(v['recall50']):>6}")
+    print(f"visibility: {m['visibility_source']}\nwrote {args.json} and {m['bop_csv']}")
+    return 0
+
+
+def cmd_score(args) -> int:
+    from tracker.core.bop import check_output_file
+    from tracker.evaluation.scoring import score_results, write_metrics_json
+    check_output_file(args.json, "--json")
+    m = score_results(args.results, args.data, args.models, models_info=args.models_info)
+    write_metrics_json(args.json, m)
+    from tracker.evaluation.report import fmt_num  # (no instances: the recalls are null)
+    print(f"{m['n_gt']} ground-truth instances, {m['n_est']} estimates: ADD(I) {fmt_num(m['add_recall'])}, "
+          f"AR_MSSD {fmt_num(m['ar_mssd'])}, AR_MSPD {fmt_num(m['ar_mspd'])}, AR {fmt_num(m['ar'])} "
+          f"(visibility: {m['visibility_source']})")
+    print(f"wrote {args.json}")
+    return 0
+
+
+def cmd_synth(args) -> int:
+    from tracker.core.paths import shared_data
+    from tracker.build.synth.engine import SynthConfig, generate
+    from tracker.build.synth.preview import preview
+    obj_ids = args.obj_ids
+    if args.preview and (Path(args.preview).is_dir() or Path(args.preview).suffix.lower() not in (".png", ".jpg", ".jpeg")):
+        raise UserError(f"--preview {args.preview}: name a .png or .jpg file")  # before the rendering, not after
+    cfg = SynthConfig(models_dir=str(args.models), backgrounds_dir=str(args.backgrounds or shared_data() / "backgrounds"),
+                      seed=args.seed, prior=args.prior, obj_ids=obj_ids, mesh_faces=args.mesh_faces, depth=args.depth,
+                      p_table=args.p_table, p_gloss=args.gloss, distractors=args.distractors,
+                      lighting=args.lighting)
+    rep = generate(cfg, args.out, args.images, workers=args.workers, command="app.py " + " ".join(sys.argv[1:]))
+    state = "INTERRUPTED after" if rep.interrupted else "wrote"
+    print(f"{state} {rep.images} images, {rep.instances} instances ({rep.crops_visib_ge_0_1} with visib >= 0.1) "
+          f"in {rep.seconds:.0f} s: {rep.images_per_s:.1f} images/s, {rep.crops_per_s:.1f} crops/s, "
+          f"peak RSS {rep.peak_rss_mb_parent:.0f} MB (main) / {rep.peak_rss_mb_worker:.0f} MB (worker)")
+    if args.preview and rep.images:
+        print(f"preview: {preview(args.out, args.preview)}")
+    return 130 if rep.interrupted else 0
+
+
+def cmd_train(args) -> int:
+    from tracker.build.train import train_bundle
+    m = train_bundle(args.data, args.out, method=args.method, size=args.size, latent=args.latent,
+                     minutes=args.minutes, seed=args.seed, max_images=args.max_images,
+                     models_info_path=args.models_info, reg_minutes=args.reg_minutes, encoder=args.encoder,
+                     init_from=args.init_from, precision=args.precision, reg_epochs=args.reg_epochs,
+                     command="app.py " + " ".join(sys.argv[1:]))
+    _print_validation(args.out, m)
+    return 0
+
+
+def cmd_train_detector(args) -> int:
+    from tracker.build.detector_train import train_detector
+    d = train_detector(args.data, args.model, minutes=args.minutes, width=args.width, input_w=args.input[0],
+                       input_h=args.input[1], batch=args.batch, seed=args.seed, max_images=args.max_images,
+                       lr=args.lr, init_from=args.init_from, occlusion=args.occlusion, paste_objects=args.paste_objects,
+                       cutouts=args.cutouts, cutout_share=args.cutout_share,
+                       precision=args.precision, box_kind=args.boxes, colour=args.colour, ema=args.ema,
+                       command="app.py " + " ".join(sys.argv[1:]))
+    v = d["training"]["validation_synthetic"]
+    from tracker.evaluation.report import fmt_num
+    print(f"detector added to {args.model}: synthetic validation AP {fmt_num(v['ap'])}, AP50 {fmt_num(v['ap50'])}")
+    return 0
+
+
+def cmd_report(args) -> int:
+    from tracker.evaluation.report import build_report
+    path = build_report(args.model, args.data, args.out, ablate_json=args.ablate, reuse=args.reuse,
+                        max_frames=args.max_frames, log=lambda m: print(m, file=sys.stderr))
+    print(f"wrote {path} (with its PNG plots and evaluation JSONs beside it)")
+    return 0
+
+
+def add_commands(sub, REPO) -> None:
+    """The user's jobs, each a sub-parser of ``sub``."""
+    s = sub.add_parser("demo", help="replay the bundled recording through the pipeline (default)")
+    s.add_argument("--out", help="run folder (default runs/demo-TIMESTAMP)")
+    s.add_argument("--max-frames", type=positive_int, default=None)
+    s.set_defaults(func=cmd_demo)
+
+    s = sub.add_parser("track", help="the frame loop on a camera, video, image folder or BOP scene")
+    s.add_argument("--source", required=True, help="camera index or /dev/videoN, video file, image folder, BOP scene")
+    s.add_argument("--model", default=str(REPO / "models" / "lmo"),
+                   help="model bundle (default models/lmo)")
+    s.add_argument("--calib", help="camera file (needed for cameras, videos and image folders)")
+    s.add_argument("--out", help="run folder (default runs/track-TIMESTAMP)")
+    s.add_argument("--rerun", choices=["spawn", "serve", "save", "off"], default="save")
+    s.add_argument("--max-frames", type=positive_int)
+    s.add_argument("--realtime", action="store_true", help="play recordings at their recorded rate")
+    s.add_argument("--no-overlay", action="store_true", help="skip rendering the overlay")
+    s.add_argument("--loop", action="store_true", help="replay a recording again and again up to --max-frames (soak)")
+    s.add_argument("--detect-every", type=positive_int, default=1, metavar="N",
+                   help="run the detector every N frames (and whenever an object is lost); in between, "
+                        "boxes come from the previous poses")
+    s.add_argument("--smooth", type=float, default=None, metavar="ALPHA",
+                   help="temporal smoothing on SO(3) x R^3, 0 < ALPHA <= 1 (smaller = smoother); off by default")
+    s.add_argument("--boxes", choices=["auto", "gt", "detector"], default="auto",
+                   help="auto: ground truth on BOP scenes that have it, else the bundle's detector")
+    s.set_defaults(func=cmd_track)
+
+    s = sub.add_parser("bench", help="per-stage latency of the live pipeline")
+    s.add_argument("--model", default=str(REPO / "models" / "lmo"))
+    s.add_argument("--source", default=str(REPO / "demo" / "lmo_dev"),
+                   help="default: the bundled recording")
+    s.add_argument("--calib")
+    s.add_argument("--frames", type=positive_int, default=50)
+    s.add_argument("--boxes", choices=["auto", "gt", "detector"], default="detector",
+                   help="detector (default; the real pipeline) or ground-truth boxes")
+    s.add_argument("--detect-every", type=positive_int, default=1, metavar="N")
+    s.add_argument("--obj-ids", type=int, nargs="+", help="track only these objects (e.g. one, for the 1-object case)")
+    s.add_argument("--skip-first", type=nonnegative_int, default=2, help="warm-up frames left out of the statistics")
+    s.add_argument("--rerun", choices=["save", "off"], default="save")
+    s.add_argument("--no-overlay", action="store_true")
+    s.add_argument("--out", help="keep the run folder here")
+    s.add_argument("--json", required=True)
+    s.set_defaults(func=cmd_bench)
+
+    s = sub.add_parser("calibrate", help="checkerboard calibration -> camera file")
+    g = s.add_mutually_exclusive_group()
+    g.add_argument("--images", help="glob of board photos, e.g. 'calib/*.jpg'")
+    g.add_argument("--source", help="video file or camera index")
+    s.add_argument("--board", required=True, help="inner corners COLSxROWS, e.g. 9x6")
+    s.add_argument("--square", type=positive_float, required=True, help="square side in mm")
+    s.add_argument("--out", required=True, help="camera file to write (OpenCV YAML)")
+    s.add_argument("--every", type=positive_int, default=15, help="with --source: use every Nth frame")
+    s.set_defaults(func=cmd_calibrate)
+
+    s = sub.add_parser("imu", help="compare tracked rotations with an IMU fixed to the object")
+    s.add_argument("--run", required=True, help="a 'track' run folder (poses.csv, timings.csv)")
+    s.add_argument("--imu", required=True, help="IMU log CSV: t,qw,qx,qy,qz[,gx,gy,gz]")
+    s.add_argument("--out", required=True, help="folder for imu_report.json and the plots")
+    s.add_argument("--obj-id", type=int, help="the tracked object carrying the IMU")
+    s.add_argument("--mode", choices=["full", "simple"], default="full",
+                   help="full: estimate clock offset, mounting and world rotations; simple: the "
+                        "thesis's relative-to-first-sample comparison")
+    s.add_argument("--max-gap", type=positive_float, default=0.25, help="never interpolate across IMU gaps longer (s)")
+    s.add_argument("--time-offset", type=finite_float, default=None, metavar="S",
+                   help="IMU clock minus camera clock in seconds (default: estimated from the angular speeds)")
+    s.add_argument("--max-offset", type=positive_float, default=2.0, metavar="S",
+                   help="search the clock offset within +- S seconds (default 2)")
+    s.set_defaults(func=cmd_imu)
+
+    s = sub.add_parser("eval", help="run a bundle on a BOP scene and score it")
+    s.add_argument("--model", required=True, help="model bundle folder")
+    s.add_argument("--data", required=True, help="BOP scene folder with ground truth")
+    s.add_argument("--boxes", choices=["gt", "detector"], default="gt")
+    s.add_argument("--mode", choices=["regression", "aae"], default="regression",
+                   help="latent regression (the thesis) or the AAE codebook baseline")
+    s.add_argument("--json", required=True, help="metrics JSON to write")
+    s.add_argument("--bop-csv", help="BOP results CSV (default: METHOD_lmo-test.csv beside the JSON)")
+    s.add_argument("--max-frames", type=positive_int)
+    s.set_defaults(func=cmd_eval)
+
+    s = sub.add_parser("score", help="score a BOP results CSV against a BOP scene")
+    s.add_argument("--results", required=True, help="BOP results CSV")
+    s.add_argument("--data", required=True, help="BOP scene folder with ground truth")
+    s.add_argument("--models", required=True, help="folder of obj_NNNNNN.ply")
+    s.add_argument("--models-info", help="models_info.json (default: the models folder's, else computed)")
+    s.add_argument("--json", required=True, help="metrics JSON to write")
+    s.set_defaults(func=cmd_score)
+
+    s = sub.add_parser("synth", help="synthetic, domain-randomised BOP training scenes")
+    s.add_argument("--models", required=True, help="folder of obj_NNNNNN.ply (mm)")
+    s.add_argument("--out", required=True, help="output split folder")
+    s.add_argument("--images", type=positive_int, required=True, help="number of scene images")
+    s.add_argument("--seed", type=nonnegative_int, default=0)
+    s.add_argument("--backgrounds", help="folder of background photos (default: the shared data's)")
+    s.add_argument("--prior", choices=["table", "sphere"], default="table",
+                   help="pose prior: objects upright on a table (LM-O) or any orientation (hand-held)")
+    s.add_argument("--p-table", type=float, default=0.7, metavar="P",
+                   help="table prior: share of scenes with the table's surface and shadows drawn "
+                        "(0: photos behind floating objects, as data made before it existed)")
+    s.add_argument("--gloss", type=float, default=0.0, metavar="P",
+                   help="share of objects per image rendered glossy and partly metallic, with highlights "
+                        "(0: matte only, as data made before it existed)")
+    s.add_argument("--distractors", choices=["plain", "hard", "household"], default="plain",
+                   help="plain: 0-5 random primitives per image (as data made before); hard: 2-8 primitives "
+                        "textured from the photos and tinted, half the time with the targets' colours; "
+                        "household: as hard, half of the shapes mugs, cups and bottles")
+    s.add_argument("--lighting", choices=["camera", "overhead"], default="camera",
+                   help="camera: 1-3 lights from the camera's side (as data made before); overhead: a strong "
+                        "key light from above the table, a weak fill, little ambient (bright tops, dark sides)")
+    s.add_argument("--obj-ids", type=id_list, help="comma-separated subset of the models' ids")
+    s.add_argument("--workers", type=positive_int, default=2, help="render processes")
+    s.add_argument("--depth", action="store_true", help="also write depth images (depth/, for VSD)")
+    s.add_argument("--mesh-faces", type=positive_int, default=None, metavar="N",
+                   help="render the objects decimated to about N faces: faster on the CPU rasteriser, "
+                        "slightly smoother colours (default: the full meshes)")
+    s.add_argument("--preview", help="PNG montage of samples, boxes, visible fractions and crops")
+    s.set_defaults(func=cmd_synth)
+
+    s = sub.add_parser("train", help="autoencoder + latent regressors (+ AAE codebook) -> model bundle")
+    s.add_argument("--data", required=True, help="a 'synth' split")
+    s.add_argument("--out", required=True, help="bundle folder, e.g. models/lmo")
+    s.add_argument("--method", choices=["dalsr", "cvml", "cvam"], default="cvam")
+    s.add_argument("--encoder", choices=["plain", "resnet"], default="plain",
+                   help="plain strided convs (CVML-base) or residual blocks (CVML-18 style)")
+    s.add_argument("--size", type=positive_int, default=64, help="crop side in pixels (thesis: 128)")
+    s.add_argument("--latent", type=positive_int, default=128)
+    s.add_argument("--minutes", type=positive_float, default=45.0, help="autoencoder time budget")
+    add_regressor_budget(s)
+    s.add_argument("--seed", type=nonnegative_int, default=0)
+    s.add_argument("--max-images", type=positive_int, help="use only the first N scene images")
+    s.add_argument("--models-info", help="models_info.json (default: computed from the meshes)")
+    s.add_argument("--init-from", metavar="CKPT",
+                   help="start from another run's ae_checkpoint.pt (same network), e.g. to train on more data")
+    add_precision(s)
+    s.set_defaults(func=cmd_train)
+
+    s = sub.add_parser("train-detector", help="train the 2D detector on synth scenes and add it to a bundle")
+    s.add_argument("--data", required=True, help="a 'synth' split")
+    s.add_argument("--model", required=True, help="the bundle that gets detector.onnx")
+    s.add_argument("--minutes", type=positive_float, default=60.0, help="training time budget (cosine schedule over it)")
+    s.add_argument("--width", type=positive_int, default=32, help="base channel width of the network")
+    s.add_argument("--input", type=positive_int, nargs=2, default=(320, 240), metavar=("W", "H"), help="network input size")
+    s.add_argument("--batch", type=positive_int, default=32)
+    s.add_argument("--lr", type=positive_float, default=2e-3, help="peak learning rate (lower to fine-tune)")
+    s.add_argument("--seed", type=nonnegative_int, default=0)
+    s.add_argument("--max-images", type=positive_int, default=None, help="use only the first N images")
+    s.add_argument("--init-from", metavar="CKPT|BUNDLE",
+                   help="start from another run's detector_ckpt_*.pt (same width and classes), e.g. to fine-tune on "
+                        "new data, or from a bundle whose detector is one float network (its weights read back from "
+                        "the ONNX graph; its BatchNorms then stay frozen)")
+    s.add_argument("--boxes", choices=("visible", "amodal"), default="visible",
+                   help="what the boxes cover: the visible part of each object, or its whole silhouette clipped "
+                        "to the image (amodal: size and centre follow the object behind occluders)")
+    s.add_argument("--occlusion", type=fraction, default=0.0, metavar="P",
+                   help="share of training images that get clutter pasted over them (occlusion augmentation)")
+    s.add_argument("--paste-objects", type=fraction, default=0.0, metavar="P",
+                   help="share of those pasted rectangles cut around another image's object, which then "
+                        "becomes a target too (objects in front of objects)")
+    s.add_argument("--cutouts", metavar="DIR",
+                   help="folder of RGBA images of things cut out of their background (PNG with alpha), "
+                        "pasted over training images as real clutter that is not a target (docs/models.md)")
+    s.add_argument("--cutout-share", type=fraction, default=None, metavar="P",
+                   help="share of training images that get 1-3 cut-outs pasted over them (with --cutouts; default 0.5)")
+    s.add_argument("--colour", choices=("standard", "strong", "mild"), default="standard",
+                   help="photometric augmentation: brightness, contrast, saturation, white balance, blur and noise; "
+                        "'strong' adds grey-scale blends, per-channel gains and offsets, hue turns, inverted "
+                        "channels and wider blurs (as detectors trained on renders for BOP do); 'mild' leaves "
+                        "out saturation and white balance (the objects' colours kept)")
+    s.add_argument("--ema", type=float, default=0.0, metavar="DECAY",
+                   help="validate and export the exponential moving average of the weights with this decay "
+                        "(e.g. 0.999: about the last 1,000 steps) instead of the last weights; 0: off")
+    add_precision(s)
+    s.set_defaults(func=cmd_train_detector)
+
+    s = sub.add_parser("report", help="reproduction report: our numbers next to the thesis's (Markdown + PNG)")
+    s.add_argument("--model", default=str(REPO / "models" / "lmo"))
+    s.add_argument("--data", default=None, help="BOP scene with ground truth (default: the bundled recording)")
+    s.add_argument("--out", required=True, help="report folder")
+    s.add_argument("--ablate", help="JSON written by 'app.py ablate' (Tables 4.1 / 4.2)")
+    s.add_argument("--reuse", action="store_true", help="reuse evaluation JSONs already in --out")
+    s.add_argument("--max-frames", type=positive_int)
+    s.set_defaults(func=cmd_report)

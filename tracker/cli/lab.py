@@ -1,0 +1,183 @@
+"""Research tools: ``app.py lab COMMAND`` (``app.py lab --help``). Joins, refits and tuning of
+bundles, ablations, and data helpers; kept out of the user's ``--help``."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from tracker.cli.args import (add_join, add_regressor_budget, jpeg_quality, nonnegative_int, positive_float,
+                              positive_int)
+from tracker.cli.jobs import _default_run_dir, _print_validation
+
+
+def _print_preview(s) -> None:
+    print(f"{s.frames} frames, {s.instances} object instances rendered at their ground-truth poses "
+          f"({s.ms_per_frame_render:.0f} ms/frame render)")
+    print(f"silhouette vs projected-vertex box IoU over the {s.instances_in_view} instances in view: "
+          f"median {s.box_iou_median:.3f}, min {s.box_iou_min:.3f}; "
+          f"object centres inside the image: {s.centres_in_image}/{s.instances}")
+    print(f"overlays: {s.frames_dir}\nmontage:  {s.montage}")
+
+
+def cmd_join_splits(args) -> int:
+    from tracker.build.synth.join import join_splits
+    m = join_splits(args.out, args.splits, command="app.py " + " ".join(sys.argv[1:]))
+    print(f"wrote {args.out}: {m['scenes']} scenes, {m['images_written']} images "
+          f"from {len(args.splits)} splits (linked, not copied)")
+    return 0
+
+
+def cmd_refit_heads(args) -> int:
+    from tracker.build.train import refit_heads
+    m = refit_heads(args.model, args.data, out_dir=args.out, seed=args.seed, reg_minutes=args.reg_minutes,
+                    keep_regressors=args.keep_regressors, jitter_scale=args.jitter_scale, reg_epochs=args.reg_epochs,
+                    command="app.py " + " ".join(sys.argv[1:]))
+    _print_validation(args.out or args.model, m)
+    return 0
+
+
+def cmd_join_heads(args) -> int:
+    from tracker.research.head_ensemble import join_heads
+    join_heads(args.model, args.heads_from, out_dir=args.out, command="app.py " + " ".join(sys.argv[1:]))
+    return 0
+
+
+def cmd_join_detectors(args) -> int:
+    from tracker.research.detector_ensemble import join_detectors
+    extra = {"calibration_images": args.calibration_images} if args.calibration_images else {}
+    if args.score_thresh is not None:
+        extra["score_thresh"] = args.score_thresh
+    join_detectors(args.model, args.detectors_from, out_dir=args.out, int8_data=args.int8, mirror=args.mirror,
+                   command="app.py " + " ".join(sys.argv[1:]), **extra)
+    return 0
+
+
+def cmd_tune_heads(args) -> int:
+    from tracker.research.tune_heads import WEIGHTS, tune_trees_weight
+    tune_trees_weight(args.model, args.data, weights=args.weights or WEIGHTS, out_dir=args.out,
+                      max_frames=args.max_frames, command="app.py " + " ".join(sys.argv[1:]))
+    return 0
+
+
+def cmd_ablate(args) -> int:
+    from tracker.research.ablate import ablate
+    ablate(args.model, args.data, args.json, mlp_minutes=args.mlp_minutes, max_train=args.max_train, seed=args.seed)
+    print(f"wrote {args.json}")
+    return 0
+
+
+def cmd_decimate(args) -> int:
+    from tracker.build.decimate import add_overlay_meshes
+    add_overlay_meshes(args.model, args.faces)
+    print(f"{args.model}: overlay meshes of about {args.faces} faces added, manifest re-hashed")
+    return 0
+
+
+def cmd_pack_scene(args) -> int:
+    from tracker.runtime.recording import write_scene_video
+    r = write_scene_video(args.data, args.out, quality=args.quality, fps=args.fps)
+    print(f"wrote {r['video']}: {r['frames']} frames, {r['bytes'] / 1e6:.1f} MB, "
+          f"PSNR vs the originals min {r['psnr_min']:.1f} dB, median {r['psnr_median']:.1f} dB")
+    return 0
+
+
+def cmd_preview(args) -> int:
+    from tracker.evaluation.preview import render_gt_overlays
+    out = Path(args.out) if args.out else _default_run_dir("preview")
+    _print_preview(render_gt_overlays(args.data, args.models, out, max_frames=args.max_frames))
+    return 0
+
+
+def cmd_models_info(args) -> int:
+    from tracker.core.bop import save_models_info
+    from tracker.core.meshes import compute_models_info, load_models
+    info = compute_models_info(load_models(args.models))
+    save_models_info(args.out, info)
+    for k, v in info.items():
+        n = len(v.get("symmetries_discrete", []))
+        print(f"obj {k}: diameter {v['diameter']:.2f} mm, {n} discrete symmetr{'y' if n == 1 else 'ies'}")
+    print(f"wrote {args.out}")
+    return 0
+
+
+def add_commands(sub, REPO) -> None:
+    """The research tools, each a sub-parser of ``sub`` (the ``lab`` group)."""
+    s = sub.add_parser("join-splits", help="one training split made of several 'synth' splits (linked)")
+    s.add_argument("splits", nargs="+", type=Path, help="'synth' splits, in order")
+    s.add_argument("--out", type=Path, required=True, help="new folder")
+    s.set_defaults(func=cmd_join_splits)
+
+    s = sub.add_parser("refit-heads", help="refit a bundle's regressors and AAE codebook on its frozen encoder")
+    s.add_argument("--model", required=True, help="bundle folder, e.g. models/lmo")
+    s.add_argument("--data", required=True, help="the 'synth' split to fit on (the bundle's own, normally)")
+    s.add_argument("--out", help="write the refitted bundle here (default: in place)")
+    add_regressor_budget(s)
+    s.add_argument("--keep-regressors", action="store_true",
+                   help="keep the rotation, centre and distance regressors; fit only the distance-from-rotation "
+                        "trees and the codebook")
+    s.add_argument("--jitter-scale", type=positive_float,
+                   help="log-size noise (standard deviation) of the jittered training boxes (default: the "
+                        "autoencoder's, 0.08)")
+    s.add_argument("--seed", type=nonnegative_int, default=0)
+    s.set_defaults(func=cmd_refit_heads)
+
+    s = sub.add_parser("join-heads", help="one pose head averaging the head sets of bundles that share an encoder")
+    add_join(s, "bundle folder whose encoder, codebook and detector are kept", "heads_from",
+              "bundles with the same encoder (e.g. from 'refit-heads --out DIR') whose heads join")
+    s.set_defaults(func=cmd_join_heads)
+
+    s = sub.add_parser("join-detectors", help="one detector averaging the detectors of several bundles (optionally int8)")
+    add_join(s, "bundle folder that gets the joined detector (its own is the first member)", "detectors_from",
+              "bundles whose detectors (same classes, input and normalisation) join", required=False)
+    s.add_argument("--mirror", choices=("none", "both", "alternate"), default="none",
+                   help="mirror images too: 'both' averages every network on the image and its mirror image "
+                        "(twice the work; one network needs no --from then), 'alternate' shows the networks the "
+                        "image and the mirror image by turns (no extra work)")
+    s.add_argument("--int8", metavar="SPLIT", help="quantise the joined detector to int8, calibrated on this synth split")
+    s.add_argument("--calibration-images", type=positive_int,
+                   help="images of the --int8 split to calibrate on, spread evenly over it (default: 200)")
+    s.add_argument("--score-thresh", type=float, metavar="T",
+                   help="run-time score threshold of the joined detector (default: the first member's)")
+    s.set_defaults(func=cmd_join_detectors)
+
+    s = sub.add_parser("tune-heads", help="choose on renders how much the distance leans on the trees for detector boxes")
+    s.add_argument("--model", required=True, help="bundle folder with a detector")
+    s.add_argument("--data", required=True, help="a 'synth' split or scene (renders no training used; never the "
+                                                 "evaluation frames)")
+    s.add_argument("--weights", type=float, nargs="+", metavar="W", help="the trees' shares to try (default 0 0.25 0.5 0.75)")
+    s.add_argument("--max-frames", type=positive_int, default=None, help="images per scene (default: all)")
+    s.add_argument("--out", help="write the tuned bundle here (default: in place)")
+    s.set_defaults(func=cmd_tune_heads)
+
+    s = sub.add_parser("ablate", help="regressor ablations (thesis Tables 4.1, 4.2) on the synthetic validation split")
+    s.add_argument("--model", required=True, help="bundle whose frozen encoder gives the latent codes")
+    s.add_argument("--data", required=True, help="the 'synth' split the bundle was trained on")
+    s.add_argument("--json", required=True, help="where the tables go (the report command reads it)")
+    s.add_argument("--mlp-minutes", type=positive_float, default=1.0, help="time budget of each MLP")
+    s.add_argument("--max-train", type=positive_int, default=20000, help="subsample the training crops to this many")
+    s.add_argument("--seed", type=nonnegative_int, default=0)
+    s.set_defaults(func=cmd_ablate)
+
+    s = sub.add_parser("decimate", help="add light overlay meshes (quadric decimation) to a bundle")
+    s.add_argument("--model", required=True)
+    s.add_argument("--faces", type=positive_int, default=1500, help="target triangle count per object")
+    s.set_defaults(func=cmd_decimate)
+
+    s = sub.add_parser("pack-scene", help="a BOP scene as a recording: frames in one MJPEG video + its JSON files")
+    s.add_argument("--data", required=True, help="BOP scene folder")
+    s.add_argument("--out", required=True, help="recording folder (rgb.avi, scene_camera.json, scene_gt.json)")
+    s.add_argument("--quality", type=jpeg_quality, default=95, help="JPEG quality of the frames")
+    s.add_argument("--fps", type=positive_float, default=10.0, help="frame rate written into the video")
+    s.set_defaults(func=cmd_pack_scene)
+
+    s = sub.add_parser("preview", help="render a BOP scene's ground-truth poses over its frames")
+    s.add_argument("--data", required=True, help="BOP scene folder")
+    s.add_argument("--models", required=True, help="folder of obj_NNNNNN.ply")
+    s.add_argument("--out", help="output folder")
+    s.add_argument("--max-frames", type=positive_int, default=None)
+    s.set_defaults(func=cmd_preview)
+
+    s = sub.add_parser("models-info", help="compute BOP models_info.json (diameter, box, symmetries)")
+    s.add_argument("--models", required=True, help="folder of obj_NNNNNN.ply")
+    s.add_argument("--out", required=True, help="models_info.json to write")
+    s.set_defaults(func=cmd_models_info)

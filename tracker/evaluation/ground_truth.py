@@ -1,0 +1,38 @@
+"""Ground-truth boxes of a BOP scene: ``scene_gt_info``'s visible boxes where it has them, else
+boxes and visible fractions rendered from the known objects at their ground-truth poses."""
+from __future__ import annotations
+
+import numpy as np
+
+from tracker.core.bop import gt_instances_with_boxes  # noqa: F401  (re-exported: the instances a box list keeps)
+from tracker.core.errors import UserError
+
+
+def gt_boxes(scene, models, im_ids) -> tuple[dict[int, list], str]:
+    """Visible GT boxes per image: scene_gt_info's bbox_visib, else rendered from the known objects."""
+    from tracker.evaluation.scoring import VISIB_FROM_GT_INFO, VISIB_RENDERED, rendered_gt_visibility
+    if all("bbox_visib" in g.info for i in im_ids for g in scene.gt[i]):
+        return ({i: [(np.asarray(g.info["bbox_visib"], float), float(g.info.get("visib_fract", 1.0)))
+                     for g in scene.gt[i]] for i in im_ids}, VISIB_FROM_GT_INFO)
+    h, w = scene.read_rgb(im_ids[0]).shape[:2]
+    recs = rendered_gt_visibility(scene, models, im_ids, w, h)
+    return {i: [(np.asarray(v.bbox_visib, float), v.visib_fract) for v in recs[i]] for i in im_ids}, VISIB_RENDERED
+
+
+def gt_object_ids(scene, im_ids, known, hint: str = "") -> list[int]:
+    """The objects in the ground truth of ``im_ids``; an error names any not in ``known``."""
+    ids = sorted({g.obj_id for i in im_ids for g in scene.gt.get(i, [])})
+    unknown = [o for o in ids if o not in known]
+    if unknown:
+        raise UserError(f"{scene.root}: the ground truth has object(s) {unknown} that the bundle does not know "
+                        f"({list(known)}){hint}")
+    return ids
+
+
+def scene_gt_boxes(scene, im_ids, bundle, hint: str = "") -> dict[int, list]:
+    """Visible ground-truth boxes of ``im_ids`` for the objects of ``bundle`` (meshes from it);
+    an error names any object of the ground truth the bundle does not know."""
+    from tracker.core.meshes import load_models
+    ids = gt_object_ids(scene, im_ids, bundle.manifest.obj_ids, hint)
+    boxes, _ = gt_boxes(scene, load_models(bundle.root / "meshes", ids), im_ids)
+    return boxes
