@@ -3,6 +3,13 @@ import sys
 from pathlib import Path
 
 import pytest
+from hypothesis import HealthCheck, settings
+
+# hypothesis: no per-example deadline (its default, 200 ms, fails examples that are merely slow on a
+# busy 2-core CI machine or that pay a first call's imports); examples are still bounded by the
+# per-test timeout in pyproject.toml. HYPOTHESIS_PROFILE=default restores hypothesis's own settings
+settings.register_profile("ci", deadline=None, suppress_health_check=[HealthCheck.too_slow], print_blob=True)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))

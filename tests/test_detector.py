@@ -1,6 +1,8 @@
 """The detector's decoding, NMS, letterbox, COCO AP, and a tiny training run end to end."""
+import itertools
 import json
 import shutil
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -46,6 +48,25 @@ def test_decode_threshold_nms_and_one_per_class():
     spec.max_per_class = 5
     spec.nms_iou = 0.9  # the two boxes of class 0 overlap by IoU 0.25: both kept now
     assert sum(d.obj_id == 1 for d in decode(m, spec)) == 2
+
+    # NMS itself (several instances per class allowed, so not the one-per-class shortcut): two
+    # peaks 2 cells apart (two local maxima) whose 80 px boxes overlap by IoU
+    # 64*80 / (2*80*80 - 64*80) = 2/3 > 0.5 are one object and the weaker is suppressed; a
+    # peak far away is a second instance of the same class and survives
+    spec = DetectorSpec(classes=[1, 5], score_thresh=0.3, max_per_class=5, nms_iou=0.5)
+    m = _maps(spec, [(0, 10, 10, 0.9, 80, 80, 0, 0), (0, 10, 12, 0.8, 80, 80, 0, 0),  # one object, twice
+                     (0, 25, 35, 0.6, 40, 40, 0, 0),                                    # a second instance
+                     (1, 10, 11, 0.7, 80, 80, 0, 0)])  # another class on top of them: NMS is class-wise
+    dets = decode(m, spec)
+    assert [(d.obj_id, round(d.score, 3)) for d in dets] == [(1, 0.9), (5, 0.7), (1, 0.6)]
+    np.testing.assert_allclose(dets[0].box, [10 * 8 - 40, 10 * 8 - 40, 80, 80], atol=1e-4)  # the stronger one
+    np.testing.assert_allclose(dets[2].box, [35 * 8 - 20, 25 * 8 - 20, 40, 40], atol=1e-4)
+    # the same boxes with an IoU threshold above 2/3 are two instances: both kept ...
+    spec.nms_iou = 0.7
+    assert [round(d.score, 3) for d in decode(m, spec) if d.obj_id == 1] == [0.9, 0.8, 0.6]
+    # ... and max_per_class caps what NMS keeps, best first
+    spec.max_per_class = 2
+    assert [round(d.score, 3) for d in decode(m, spec) if d.obj_id == 1] == [0.9, 0.8]
 
 
 def test_nms_and_iou():
@@ -508,7 +529,14 @@ def test_join_detectors_averages_the_networks_and_quantises_them(tiny_detector_b
     split = tiny_bundle.parent / "split"
     second = tmp_path / "second"
     shutil.copytree(tiny_bundle, second)
-    train_detector(split, second, minutes=0.01, width=4, batch=2, seed=1, **quiet)
+    # a number of steps, not of seconds (train_detector has only a time budget): its clock ticks one
+    # second per step, so the second network and the int8 figures below are the same on a busy machine
+    import tracker.build.detector_train as detector_train
+    ticks = itertools.count()
+    with monkeypatch.context() as mp:
+        mp.setattr(detector_train, "time", SimpleNamespace(perf_counter=lambda: float(next(ticks))))
+        train_detector(split, second, minutes=20 / 60, width=4, batch=2, seed=1, **quiet)
+    assert open_bundle(second).manifest.detector["training"]["steps"] == 20
     m = join_detectors(tiny_detector_bundle, [second], out_dir=tmp_path / "joined", **quiet)
     ens = m.detector["ensemble"]
     a_thresh = open_bundle(tiny_detector_bundle).manifest.detector["score_thresh"]

@@ -1,6 +1,7 @@
 """The frame loop on short replays: files written, rerun recording readable, threaded capture."""
 import json
 import socket
+import threading
 import time
 from pathlib import Path
 
@@ -54,11 +55,26 @@ def test_video_and_folder_sources(tmp_path, data_dir):
     assert len(list(open_source(str(data_dir / "lmo" / "dev" / "rgb"), max_frames=2))) == 2
 
 
-class FakeCapture:
-    """A camera delivering a numbered frame every ``period`` seconds, unplugged after ``n``."""
+WAIT_S = 10.0  # generous: a condition that holds within milliseconds on an idle machine
 
-    def __init__(self, n=60, period=0.005):
-        self.n, self.period, self.i = n, period, 0
+
+def wait_until(cond, what, timeout=WAIT_S):
+    """Poll ``cond`` until it holds; fail after ``timeout`` seconds (no fixed sleeps that race)."""
+    deadline = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() > deadline:
+            pytest.fail(f"timed out after {timeout:g} s waiting for {what}")
+        time.sleep(0.001)
+
+
+class FakeCapture:
+    """A camera delivering numbered frames, unplugged after ``n``. It delivers a frame only when
+    the test lets it (``gate``, a semaphore that may be shared by several plugs), so that how
+    far the camera runs ahead of the pipeline is set by the test, not by the machine's load."""
+
+    def __init__(self, n=60, gate=None):
+        self.n, self.i, self.reads = n, 0, 0
+        self.gate = gate if gate is not None else threading.Semaphore(0)
 
     def isOpened(self):
         return True
@@ -70,9 +86,11 @@ class FakeCapture:
         return 200.0
 
     def read(self):
-        time.sleep(self.period)
+        self.reads += 1
         if self.i >= self.n:
-            return False, None
+            return False, None  # unplugged
+        if not self.gate.acquire(timeout=WAIT_S):
+            return False, None  # the test stopped asking for frames
         f = np.full((48, 64, 3), self.i % 256, np.uint8)
         self.i += 1
         return True, f
@@ -82,33 +100,50 @@ class FakeCapture:
 
 
 def test_threaded_capture_hands_over_the_newest_frame_and_counts_drops():
-    cam = CameraSource(0, capture=FakeCapture(n=60, period=0.005), timeout_s=1.0)
+    cap = FakeCapture(n=60)
+
+    def camera_runs_ahead(k=4):  # k new frames, all stored by the capture thread (it asks for the next)
+        target = min(cap.i + k, cap.n)
+        cap.gate.release(target - cap.i)
+        wait_until(lambda: cap.i == target and cap.reads > target, f"frame {target - 1} to be captured")
+
+    cam = CameraSource(0, capture=cap, timeout_s=WAIT_S)
     seen = []
+    camera_runs_ahead()
     for f in cam:
         seen.append(int(f.rgb[0, 0, 0]))
-        time.sleep(0.03)  # a slow pipeline: the camera runs ahead
+        if cap.i < cap.n:
+            camera_runs_ahead()  # a slow pipeline: the camera delivers 4 frames per frame handled
     cam.close()
     assert cam.lost  # unplugged: the loop ended by itself
-    assert seen == sorted(seen) and len(set(seen)) == len(seen)
-    assert cam.dropped > 20 and len(seen) + cam.dropped <= 60
-    assert seen[-1] >= 50  # the last frames handed over are the newest ones
+    # each time, the newest of the 4 new frames is handed over and the other 3 are counted as dropped
+    assert seen == list(range(3, 60, 4))
+    assert cam.dropped == 45 and len(seen) + cam.dropped == 60
 
 
 def test_camera_unplugged_and_plugged_back_in_reconnects():
-    plugs = iter([FakeCapture(n=10, period=0.002), None, FakeCapture(n=10, period=0.002)])
+    gate = threading.Semaphore(0)  # one frame at a time, whichever plug is in
+    plugs = iter([FakeCapture(n=10, gate=gate), None, FakeCapture(n=10, gate=gate)])
 
     class Unplugged(FakeCapture):
         def isOpened(self):
             return False
 
-    def opener():  # the first retry finds no device, the second finds it back
+    def opener():  # the first retry finds no device, the second finds it back, later ones none
         c = next(plugs, None)
         return c if c is not None else Unplugged()
-    cam = CameraSource(0, capture=opener(), opener=opener, reconnect_s=2.0, retry_s=0.05, timeout_s=0.5)
-    frames = [f.index for f in cam]
+    # reconnect_s: the first reconnection takes 2 retries of 0.01 s, well inside it; after the second
+    # unplug the camera is given up once it has passed (so this test lasts about reconnect_s)
+    cam = CameraSource(0, capture=opener(), opener=opener, reconnect_s=2.0, retry_s=0.01, timeout_s=WAIT_S)
+    frames, values = [], []
+    gate.release()
+    for f in cam:
+        frames.append(f.index)
+        values.append(int(f.rgb[0, 0, 0]))
+        gate.release()  # the next frame only once this one is handled: none dropped
     cam.close()
     assert cam.reconnects == 1 and cam.lost  # back once; gone for good after the second unplug
-    assert frames == list(range(len(frames))) and len(frames) >= 15
+    assert frames == list(range(20)) and values == list(range(10)) * 2 and cam.dropped == 0
 
 
 def test_missing_camera_is_a_clear_error():

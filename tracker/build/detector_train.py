@@ -494,7 +494,7 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     init_weights, frozen = _init_weights(torch, init_from, width, spec.classes) if init_from else (None, False)
     # what a resumed run must share with the run that wrote the checkpoint (the data and the
     # network are in the key): otherwise one run silently mixes two augmentations or optimisers.
-    # Not --minutes: a larger budget trains a finished run on (docs/models.md)
+    # Not --minutes: a larger budget trains a finished run on (docs/experiments/)
     recipe = {"batch": batch, "lr": lr, "seed": seed, "occlusion": occlusion, "paste_objects": paste_objects,
               **RECIPE_ADDED, "boxes": box_kind, "frozen_batchnorm": frozen, "colour": colour, "ema": ema}
     if cutouts:

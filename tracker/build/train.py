@@ -29,7 +29,7 @@ KNN_MAX_ROWS = 30_000  # the distance KNN keeps its training codes: 30 k x 138 f
 # Rotation MLP widths. On models/lmo's frozen encoder (heads on jittered + exact boxes, LM-O dev
 # frames, GT boxes): (512, 512, 512) for 5 min reached ADD(I) 0.127 / MSPD 0.476 / RE 37.2 deg,
 # (256, 256) for 3 min 0.117 / 0.445 / 39.3 deg; one layer of 128, more weight decay, input
-# noise or L2-normalised codes were all worse (docs/models.md).
+# noise or L2-normalised codes were all worse (docs/experiments/).
 ROTATION_HIDDEN = (512, 512, 512)
 
 

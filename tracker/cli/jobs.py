@@ -387,7 +387,7 @@ def add_commands(sub, REPO) -> None:
                         "becomes a target too (objects in front of objects)")
     s.add_argument("--cutouts", metavar="DIR",
                    help="folder of RGBA images of things cut out of their background (PNG with alpha), "
-                        "pasted over training images as real clutter that is not a target (docs/models.md)")
+                        "pasted over training images as real clutter that is not a target (docs/experiments/)")
     s.add_argument("--cutout-share", type=fraction, default=None, metavar="P",
                    help="share of training images that get 1-3 cut-outs pasted over them (with --cutouts; default 0.5)")
     s.add_argument("--colour", choices=("standard", "strong", "mild"), default="standard",
@@ -405,7 +405,7 @@ def add_commands(sub, REPO) -> None:
     s.add_argument("--model", default=str(REPO / "models" / "lmo"))
     s.add_argument("--data", default=None, help="BOP scene with ground truth (default: the bundled recording)")
     s.add_argument("--out", required=True, help="report folder")
-    s.add_argument("--ablate", help="JSON written by 'app.py ablate' (Tables 4.1 / 4.2)")
+    s.add_argument("--ablate", help="JSON written by 'app.py lab ablate' (Tables 4.1 / 4.2)")
     s.add_argument("--reuse", action="store_true", help="reuse evaluation JSONs already in --out")
     s.add_argument("--max-frames", type=positive_int)
     s.set_defaults(func=cmd_report)

@@ -22,7 +22,7 @@ def evaluate(model_dir, scene_dir, json_path=None, boxes: str = "gt", mode: str 
              bop_csv=None, max_frames: int | None = None, progress: bool = True,
              detector_trees_weight: float | None = None) -> dict:
     """``detector_trees_weight``: the trees' share of the distance for the detector's boxes in
-    place of the bundle's (``app.py tune-heads`` tries several)."""
+    place of the bundle's (``app.py lab tune-heads`` tries several)."""
     from tracker.core.meshes import load_models
     from tracker.evaluation.scoring import score_results, write_metrics_json
     if boxes not in ("gt", "detector"):

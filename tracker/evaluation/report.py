@@ -3,7 +3,7 @@
 - Table 5.6: the AAE codebook (LUT) against latent regression, ground-truth boxes.
 - Table 5.7: ground-truth against detector boxes (and the detector's AP).
 - Figure 5.3: recall against visibility.
-- Tables 4.1 / 4.2: the regressor ablations (from ``app.py ablate``'s JSON).
+- Tables 4.1 / 4.2: the regressor ablations (from ``app.py lab ablate``'s JSON).
 - Figure 4.13: t-SNE of the latent codes of the scene's crops, coloured by object and by genus.
 
 The evaluations are run here (``evaluate``), one JSON each in the output folder.
@@ -77,14 +77,14 @@ ABLATE_KEYS = ("train", "validation", "note", "mlp_minutes", "table_4_1", "table
 def _read_ablate(path) -> dict:
     p = Path(path)
     if not p.is_file():
-        raise UserError(f"--ablate {p}: file not found (write it with 'app.py ablate ... --json {p}')")
+        raise UserError(f"--ablate {p}: file not found (write it with 'app.py lab ablate ... --json {p}')")
     try:
         a = json.loads(p.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError):
         raise UserError(f"--ablate {p}: not a JSON file") from None
     missing = [k for k in ABLATE_KEYS if not isinstance(a, dict) or k not in a]
     if missing:
-        raise UserError(f"--ablate {p}: not written by 'app.py ablate' (missing {', '.join(missing)})")
+        raise UserError(f"--ablate {p}: not written by 'app.py lab ablate' (missing {', '.join(missing)})")
     return a
 
 
@@ -203,7 +203,7 @@ def build_report(model_dir, scene_dir, out_dir, ablate_json=None, reuse: bool = 
                f"{fmt_num(THESIS['table_4_2b'].get(r['method']), 1)} |" for r in a["table_4_2b"]]
         md.append("")
     else:
-        md += ["Not run: pass `--ablate FILE` from `app.py ablate`.", ""]
+        md += ["Not run: pass `--ablate FILE` from `app.py lab ablate`.", ""]
 
     # t-SNE
     xy, objs = latent_tsne(model_dir, scene_dir, max_frames=max_frames)

@@ -1,4 +1,4 @@
-"""``app.py ablate``: the thesis's regressor ablations on the synthetic validation split,
+"""``app.py lab ablate``: the thesis's regressor ablations on the synthetic validation split,
 with a bundle's frozen encoder.
 
 - Table 4.1 (rotation): MLP / random forest x 6D / quaternion / axis-angle, and nearest-

@@ -1,4 +1,4 @@
-"""``app.py join-heads``: one bundle whose pose head averages the head sets of several bundles
+"""``app.py lab join-heads``: one bundle whose pose head averages the head sets of several bundles
 that share its encoder (:class:`tracker.runtime.heads.HeadEnsemble`). No torch: the members are
 fitted already (``train``, ``refit-heads``)."""
 from __future__ import annotations
@@ -33,7 +33,7 @@ def join_heads(model_dir, others, out_dir=None, log=print, command: str | None =
         b = open_bundle(o)
         if b.manifest.file_sha256("encoder") != enc_sha:
             raise UserError(f"{o}: its encoder is not {model_dir}'s (SHA-256 differs); only heads fitted on the "
-                            "same encoder can be averaged (make them with 'app.py refit-heads --model "
+                            "same encoder can be averaged (make them with 'app.py lab refit-heads --model "
                             f"{model_dir} --out DIR')")
         heads.append(b.load_head())
         names.append(_origin(o, b.manifest))

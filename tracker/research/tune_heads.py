@@ -1,8 +1,8 @@
-"""``app.py tune-heads``: how much the pose head's distance leans on the distance-from-rotation
+"""``app.py lab tune-heads``: how much the pose head's distance leans on the distance-from-rotation
 trees for the detector's boxes, chosen on renders.
 
 The trees turn the estimated rotation and the box's size into the distance; they help exact
-boxes most and pass a detector box's size error on (docs/models.md, stops 30-31 and 33). The
+boxes most and pass a detector box's size error on (docs/experiments/stops-30-36.md, stops 30-31 and 33). The
 latent MLP sees the crop and can make up for part of it. This job evaluates the bundle with its
 detector's boxes on a ``synth`` split for each weight, keeps the one with the best ADD(I)
 (then AR_MSSD), and records every figure in the manifest. Exact (ground-truth) boxes keep their

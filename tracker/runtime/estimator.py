@@ -36,7 +36,7 @@ class PoseEstimate:
 
 def trees_weights(manifest) -> dict[str, float]:
     """The distance-from-rotation trees' share of the log distance for exact (ground-truth)
-    boxes and for the detector's (``app.py tune-heads`` chooses the latter; default
+    boxes and for the detector's (``app.py lab tune-heads`` chooses the latter; default
     :data:`tracker.runtime.heads.TREES_WEIGHT` for both)."""
     from tracker.runtime.heads import TREES_WEIGHT
     tw = manifest.heads.get("trees_weight", {})

@@ -390,7 +390,7 @@ class PoseHead:
 
 
 class HeadEnsemble(PoseHead):
-    """Several head sets fitted on the same frozen encoder (``app.py join-heads``), their poses
+    """Several head sets fitted on the same frozen encoder (``app.py lab join-heads``), their poses
     averaged by :func:`tracker.core.geometry.mean_pose`. A symmetric object's estimates may differ by
     one of its symmetries: each member's rotation is first turned by the symmetry that brings it
     closest to the first member's. The AAE mode is the first member's with the bundle's codebook.

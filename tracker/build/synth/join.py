@@ -1,4 +1,4 @@
-"""``app.py join-splits``: one training split made of several ``synth`` splits.
+"""``app.py lab join-splits``: one training split made of several ``synth`` splits.
 
 The scenes of every split are linked (not copied) into the new folder under consecutive
 numbers, in the order given, so training reads them one after the other; the splits must
