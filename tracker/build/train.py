@@ -245,7 +245,11 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
                  minutes: float = 45.0, seed: int = 0, max_images: int | None = None,
                  models_info_path=None, codebook_per_object: int = 1500, reg_minutes: float = 5.0,
                  log=print, command: str | None = None, encoder: str = "plain", init_from=None,
-                 precision: str = "auto", reg_epochs: int | None = None) -> dict:
+                 precision: str = "auto", reg_epochs: int | None = None, lr: float = 1e-3, batch: int = 128,
+                 pretrained: bool = True) -> dict:
+    """``encoder``: plain | resnet | lite0 | lite1 | lite2 (an ImageNet-pretrained trunk; with
+    ``pretrained=False`` the same network from random weights, the control). ``lr``, ``batch``:
+    the autoencoder's AdamW step size and batch."""
     torch = _torch()
     from tracker.build.crops import CropSet, build_training_crops, crops_cache_path, train_val_split
     from tracker.core.meshes import load_models
@@ -291,12 +295,13 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
     tr, va = train_val_split(len(cs), seed)
     c_all = onehot(idx, n_obj)
 
-    model = AutoEncoder(method, size, latent, n_obj, encoder=encoder)
+    model = AutoEncoder(method, size, latent, n_obj, encoder=encoder, pretrained=pretrained)
     n_params = sum(p.numel() for p in model.parameters())
     log(f"{method}: {n_params / 1e6:.2f} M parameters, {len(tr)} train / {len(va)} validation crops, "
         f"{n_obj} objects, budget {minutes:.0f} min, {precision} training passes")
     hist = train_autoencoder(model, cs.x[tr], cs.y[tr], c_all[tr], cs.x[va], cs.y[va], c_all[va], work,
-                             minutes=minutes, seed=seed, init_from=init_from, precision=precision, log=log)
+                             minutes=minutes, seed=seed, init_from=init_from, precision=precision, log=log,
+                             lr=lr, batch=batch)
 
     cond = c_all if method == "cvam" else None
     mu = encode_all(model, cs.x, cond)
@@ -355,7 +360,8 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
                      "crops": len(cs), "train": len(tr), "validation": len(va), "ae_parameters": n_params,
                      "ae_epochs": len(hist["epoch"]), "ae_best_val_l2": float(min(hist["val_l2"])),
                      "ae_minutes": round(hist["seconds"][-1] / 60, 1) if hist["seconds"] else 0.0, "total_minutes": round((time.perf_counter() - t0) / 60, 1),
-                     "knn": dist_info["knn"], "seed": seed, "precision": precision,
+                     "knn": dist_info["knn"], "seed": seed, "precision": precision, "lr": lr, "batch": batch,
+                     **({"pretrained": pretrained} if encoder not in ("plain", "resnet") else {}),
                      **({"init_from": str(init_from)} if init_from else {}), "onnx_max_abs_diff": diff},
         validation_synthetic=val,
         heads={"rotation_frame": head.rotation_frame, "distance": dist_info["head"],

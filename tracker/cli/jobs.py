@@ -200,6 +200,7 @@ def cmd_train(args) -> int:
                      minutes=args.minutes, seed=args.seed, max_images=args.max_images,
                      models_info_path=args.models_info, reg_minutes=args.reg_minutes, encoder=args.encoder,
                      init_from=args.init_from, precision=args.precision, reg_epochs=args.reg_epochs,
+                     lr=args.lr, batch=args.batch, pretrained=not args.no_pretrained,
                      command="app.py " + " ".join(sys.argv[1:]))
     _print_validation(args.out, m)
     return 0
@@ -349,8 +350,14 @@ def add_commands(sub, REPO) -> None:
     s.add_argument("--data", required=True, help="a 'synth' split")
     s.add_argument("--out", required=True, help="bundle folder, e.g. models/lmo")
     s.add_argument("--method", choices=["dalsr", "cvml", "cvam"], default="cvam")
-    s.add_argument("--encoder", choices=["plain", "resnet"], default="plain",
-                   help="plain strided convs (CVML-base) or residual blocks (CVML-18 style)")
+    s.add_argument("--encoder", choices=["plain", "resnet", "lite0", "lite1", "lite2"], default="plain",
+                   help="plain strided convs (CVML-base), residual blocks (CVML-18 style), or an ImageNet-pretrained "
+                        "EfficientNet-Lite trunk (lite0/1/2, fine-tuned with its BatchNorm frozen; crops a multiple "
+                        "of 32 px, e.g. --size 128)")
+    s.add_argument("--no-pretrained", action="store_true",
+                   help="with --encoder lite*: the same network from random weights (the control)")
+    s.add_argument("--lr", type=positive_float, default=1e-3, help="the autoencoder's AdamW learning rate")
+    s.add_argument("--batch", type=positive_int, default=128, help="the autoencoder's batch size")
     s.add_argument("--size", type=positive_int, default=64, help="crop side in pixels (thesis: 128)")
     s.add_argument("--latent", type=positive_int, default=128)
     s.add_argument("--minutes", type=positive_float, default=45.0, help="autoencoder time budget")

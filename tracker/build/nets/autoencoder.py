@@ -6,9 +6,12 @@
 - ``cvam``: conditional VAE: the one-hot object label is tiled and concatenated to the
   input of every conv layer of encoder and decoder (CVAM-Pose, Table 4.12).
 
-Encoders: ``plain`` (strided convs, CVML-base) or ``resnet`` (residual blocks with a
+Encoders: ``plain`` (strided convs, CVML-base), ``resnet`` (residual blocks with a
 strided 1x1 shortcut, the ResNet-style encoder of CVML-18 at CPU width; for cvam the label
-goes into every block). SiLU, nearest-neighbour upsampling + conv decoder (no transposed
+goes into every block), or ``lite0``/``lite1``/``lite2``: an ImageNet-pretrained
+EfficientNet-Lite trunk (:mod:`tracker.build.nets.backbone`, BatchNorm frozen), a 1x1 conv to
+128 channels and the latent layers (for cvam the label joins there: the pretrained layers
+take images only). SiLU, nearest-neighbour upsampling + conv decoder (no transposed
 convolutions). The encoder's ``forward`` returns ``mu`` only: that is what is exported to ONNX.
 """
 from __future__ import annotations
@@ -18,7 +21,9 @@ from torch import nn
 from torch.nn import functional as F
 
 METHODS = ("dalsr", "cvml", "cvam")
-ENCODERS = ("plain", "resnet")
+PRETRAINED = ("lite0", "lite1", "lite2")
+ENCODERS = ("plain", "resnet") + PRETRAINED
+TRUNK_REDUCED = 128  # channels of the pretrained trunk's features after the 1x1 conv
 
 
 class CondConv(nn.Module):
@@ -54,22 +59,34 @@ class CondResBlock(nn.Module):
 
 class Encoder(nn.Module):
     def __init__(self, size=64, latent=128, widths=(32, 64, 128, 256), n_cond=0, variational=True,
-                 arch: str = "plain"):
+                 arch: str = "plain", pretrained: bool = True):
         super().__init__()
         if arch not in ENCODERS:
             raise ValueError(f"unknown encoder {arch}")
         self.size, self.latent, self.n_cond, self.variational = size, latent, n_cond, variational
-        layers, cin = [], 3
-        for w in widths:
-            layers.append(CondResBlock(cin, w, n_cond) if arch == "resnet" else CondConv(cin, w, n_cond, stride=2))
-            cin = w
-        self.convs = nn.ModuleList(layers)
-        self.feat = size // 2 ** len(widths)
+        self.trunk = None
+        if arch in PRETRAINED:
+            from tracker.build.nets.backbone import FEATURES, LiteTrunk
+            if size % 32:
+                raise ValueError(f"a pretrained trunk needs a crop size that is a multiple of 32, not {size}")
+            self.trunk = LiteTrunk(arch, pretrained)
+            self.reduce = nn.Conv2d(FEATURES, TRUNK_REDUCED, 1)
+            self.convs = nn.ModuleList()
+            self.feat, cin = size // 32, TRUNK_REDUCED
+        else:
+            layers, cin = [], 3
+            for w in widths:
+                layers.append(CondResBlock(cin, w, n_cond) if arch == "resnet" else CondConv(cin, w, n_cond, stride=2))
+                cin = w
+            self.convs = nn.ModuleList(layers)
+            self.feat = size // 2 ** len(widths)
         flat = cin * self.feat * self.feat
         self.mu = nn.Linear(flat + n_cond, latent)
         self.logvar = nn.Linear(flat + n_cond, latent) if variational else None
 
     def features(self, x, c=None):
+        if self.trunk is not None:
+            x = F.silu(self.reduce(self.trunk(x)))
         for layer in self.convs:
             x = layer(x, c)
         h = x.flatten(1)
@@ -111,14 +128,14 @@ class Decoder(nn.Module):
 
 class AutoEncoder(nn.Module):
     def __init__(self, method="cvam", size=64, latent=128, n_objects=1, widths=(32, 64, 128, 256),
-                 encoder: str = "plain"):
+                 encoder: str = "plain", pretrained: bool = True):
         super().__init__()
         if method not in METHODS:
             raise ValueError(f"unknown method {method}")
         self.method = method
         n_cond = n_objects if method == "cvam" else 0
         variational = method in ("cvml", "cvam")
-        self.encoder = Encoder(size, latent, widths, n_cond, variational, arch=encoder)
+        self.encoder = Encoder(size, latent, widths, n_cond, variational, arch=encoder, pretrained=pretrained)
         self.decoder = Decoder(size, latent, tuple(reversed(widths)), n_cond)
         self.n_cond = n_cond
 

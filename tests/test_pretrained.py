@@ -1,0 +1,81 @@
+"""The ImageNet-pretrained trunk of the pose encoder (issue 38): weights, normalisation,
+frozen BatchNorm, a tiny training run through export, and the error when the extra is missing."""
+import sys
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+pytest.importorskip("efficientnet_lite_pytorch")
+
+from tracker.build.nets.backbone import LiteTrunk, imagenet_input, load_efficientnet  # noqa: E402
+from tracker.core.errors import UserError  # noqa: E402
+
+
+def _photo(data_dir, rgb=True):
+    import cv2
+    im = cv2.imread(str(data_dir / "backgrounds" / "lomiri_Dragonfly_by_Bolly.jpg"))
+    if rgb:
+        im = cv2.cvtColor(im, cv2.COLOR_BGR2RGB)
+    h, w = im.shape[:2]
+    s = min(h, w)
+    im = cv2.resize(im[(h - s) // 2:(h - s) // 2 + s, (w - s) // 2:(w - s) // 2 + s], (224, 224),
+                    interpolation=cv2.INTER_LINEAR)
+    return torch.from_numpy(im).permute(2, 0, 1)[None].float() / 255.0
+
+
+def test_the_imagenet_weights_load_and_see_the_dragonfly(data_dir):
+    """Loaded strictly; RGB in [0, 1] through the weights' normalisation gives ImageNet class 319
+    (dragonfly) for the shared dragonfly photo; the same photo as BGR does not."""
+    net = load_efficientnet("lite0").eval()
+    with torch.no_grad():
+        assert int(net(imagenet_input(_photo(data_dir))).argmax()) == 319
+        assert int(net(imagenet_input(_photo(data_dir, rgb=False))).argmax()) != 319
+
+
+def test_the_trunk_keeps_its_batchnorm_frozen_while_its_convolutions_learn():
+    trunk = LiteTrunk("lite0").train()
+    bns = [m for m in trunk.modules() if isinstance(m, torch.nn.BatchNorm2d)]
+    assert bns and not any(m.training for m in bns)
+    before_stats = [m.running_mean.clone() for m in bns]
+    before_w = trunk.net._conv_stem.weight.detach().clone()
+    opt = torch.optim.SGD([p for p in trunk.parameters() if p.requires_grad], lr=0.1)
+    x = torch.rand(2, 3, 64, 64)
+    trunk(x).square().mean().backward()
+    opt.step()
+    assert all(torch.equal(a, m.running_mean) for a, m in zip(before_stats, bns))
+    assert all(not p.requires_grad for m in bns for p in m.parameters())
+    assert not torch.equal(before_w, trunk.net._conv_stem.weight)
+    assert trunk(x).shape == (2, 1280, 2, 2)
+
+
+def test_random_weights_differ_from_the_pretrained_ones():
+    a, b = load_efficientnet("lite0"), load_efficientnet("lite0", pretrained=False)
+    assert not torch.equal(a._conv_stem.weight, b._conv_stem.weight)
+
+
+def test_a_missing_weights_package_is_a_one_line_error(monkeypatch):
+    monkeypatch.setitem(sys.modules, "efficientnet_lite_pytorch", None)
+    with pytest.raises(UserError, match=r"'train' extra"):
+        load_efficientnet("lite0")
+    with pytest.raises(UserError, match="unknown trunk"):
+        load_efficientnet("lite9")
+
+
+def test_a_tiny_training_run_with_the_pretrained_trunk_exports_and_estimates(data_dir, tmp_path):
+    from tracker.build.synth.engine import SynthConfig, generate
+    from tracker.build.train import train_bundle
+    from tracker.core.bop import load_scene
+    from tracker.runtime.estimator import Detection, PoseEstimator
+    split = tmp_path / "split"
+    generate(SynthConfig(models_dir=str(data_dir / "lmo" / "models"), backgrounds_dir=str(data_dir / "backgrounds"),
+                         obj_ids=[1, 9], seed=5, objects_per_image=(2, 2)), split, 4, workers=1, progress=False)
+    m = train_bundle(split, tmp_path / "b", method="cvam", size=32, latent=16, minutes=0.05, reg_epochs=2,
+                     encoder="lite0", lr=3e-4, batch=8, log=lambda *a: None)
+    assert m.encoder == "lite0" and m.training["pretrained"] and m.training["onnx_max_abs_diff"] <= 1e-4
+    est = PoseEstimator(tmp_path / "b")
+    scene = load_scene(split / "000000", require_gt=True)
+    dets = [Detection(g.obj_id, np.asarray(g.info["bbox_visib"], float)) for g in scene.gt[0]
+            if g.info["bbox_visib"][2] > 1]
+    poses = est.estimate(scene.read_rgb(0), scene.K(0), dets)
+    assert poses and all(np.allclose(p.R @ p.R.T, np.eye(3), atol=1e-5) for p in poses)
