@@ -601,7 +601,7 @@ def test_join_detectors_averages_the_networks_and_quantises_them(tiny_detector_b
         join_detectors(tiny_detector_bundle, [second], out_dir=tmp_path / "m", mirror="sideways", **quiet)
     other = tmp_path / "other"
     shutil.copytree(second, other)
-    update_manifest(other, lambda man: man.detector.update(input_w=256))
+    update_manifest(other, lambda man, folder: man.detector.update(input_w=256))
     with pytest.raises(UserError, match="input_w"):
         join_detectors(tiny_detector_bundle, [other], out_dir=tmp_path / "bad", **quiet)
 

@@ -117,15 +117,15 @@ def test_mlp_weights_are_stored_in_half_precision_and_evaluated_in_float32(tmp_p
         m.mean_, m.scale_ = np.zeros(shapes[0][0], np.float32), np.ones(shapes[0][0], np.float32)
         m.layers_ = [(r.normal(size=s).astype(np.float32), r.normal(size=s[1]).astype(np.float32)) for s in shapes]
         return m
-    m = mlp([(5, 32), (32, 3)])
-    head = PoseHead([1], m, m, m)
+    m = mlp([(5, 32), (32, 6)])
+    head = PoseHead([1], m, mlp([(5, 8), (8, 2)]), mlp([(5, 8), (8, 1)]))
     save_head(head, tmp_path / "h.json", tmp_path / "h.npz")
     assert all(W.dtype == np.float32 for W, _ in m.layers_)  # storing leaves the fitted object as it was
     small = load_head(tmp_path / "h.json", tmp_path / "h.npz").rotation
     assert type(small) is MLP and small.layers_[0][0].dtype == np.float32
     assert np.array_equal(small.layers_[0][0], m.layers_[0][0].astype(np.float16).astype(np.float32))
     X = r.normal(size=(20, 5)).astype(np.float32)
-    assert np.allclose(small.predict(X), m.predict(X), rtol=1e-2, atol=1e-2)
+    assert np.allclose(small._forward(X), m._forward(X), rtol=1e-2, atol=1e-2)
     big = mlp([(5, 600), (600, 3)])
     big.layers_[0] = (np.zeros((5, 600), np.float32), np.zeros(600, np.float32))
     spec, arrays = big.to_arrays()
@@ -167,3 +167,47 @@ def test_every_regressor_kind_survives_storage_exactly(tmp_path):
     save_codebook(cb, tmp_path / "cb.npz")
     for a, b in zip(cb.predict(mu[:5], ids[:5]), load_codebook(tmp_path / "cb.npz").predict(mu[:5], ids[:5])):
         assert np.array_equal(a, b)
+
+
+def test_malformed_pose_heads_are_refused_not_run(tmp_path):
+    """Every way a stored head can be wrong ends in ValueError (a one-line error at load), never
+    in another exception or an endless tree walk."""
+    import json
+
+    import pytest
+
+    from tracker.build.fit_heads import BoostedTrees, NumpyMLP
+    from tracker.runtime.heads import PoseHead, load_head, save_head
+    r = np.random.default_rng(2)
+
+    def mlp(n_in, out):
+        m = NumpyMLP()
+        m.mean_, m.scale_ = np.zeros(n_in, np.float32), np.ones(n_in, np.float32)
+        m.layers_ = [(r.normal(size=(n_in, 4)).astype(np.float32), np.zeros(4, np.float32)),
+                     (r.normal(size=(4, out)).astype(np.float32), np.zeros(out, np.float32))]
+        return m
+    trees = BoostedTrees(max_iter=3, seed=0).fit(r.normal(size=(40, 10)), r.normal(size=40))
+    save_head(PoseHead([1], mlp(9, 6), mlp(13, 2), mlp(11, 1), distance_by_rotation=trees),
+              tmp_path / "h.json", tmp_path / "h.npz")
+    good_spec = json.loads((tmp_path / "h.json").read_text())
+    with np.load(tmp_path / "h.npz") as z:
+        good = dict(z)
+
+    def broken(spec_change=None, arrays_change=None):
+        spec, arrays = json.loads(json.dumps(good_spec)), dict(good)
+        if spec_change:
+            spec_change(spec)
+        if arrays_change:
+            arrays_change(arrays)
+        (tmp_path / "b.json").write_text(json.dumps(spec))
+        np.savez(tmp_path / "b.npz", **arrays)
+        with pytest.raises(ValueError):
+            load_head(tmp_path / "b.json", tmp_path / "b.npz")
+    broken(lambda s: s.update(members=["not a mapping"]))
+    broken(lambda s: s["members"][0].update(rotation=[1, 2]))
+    broken(lambda s: s["members"][0]["distance"].update(kind="forest"))
+    broken(lambda s: s["members"][0].update(centre=s["members"][0]["rotation"]))  # 6 outputs for the centre
+    broken(arrays_change=lambda a: a.update({"m0.rotation.W1": np.zeros((5, 6), np.float32)}))  # shapes do not chain
+    broken(arrays_change=lambda a: a.update({"m0.distance_by_rotation.left": np.zeros_like(a["m0.distance_by_rotation.left"])}))
+    broken(lambda s: s.update(kind="ensemble", symmetries=[1]))
+    assert load_head(tmp_path / "h.json", tmp_path / "h.npz").distance_by_rotation is not None

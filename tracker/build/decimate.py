@@ -39,13 +39,13 @@ def add_overlay_meshes(bundle_dir, faces: int = 1500, log=print) -> dict[int, st
     root = Path(bundle_dir)
     out = {}
 
-    def change(manifest):  # runs once the bundle is verified: nothing is written before
-        (root / "meshes" / "overlay").mkdir(parents=True, exist_ok=True)
+    def change(manifest, folder):  # runs once the bundle is verified, on a staged copy of it
+        (folder / "meshes" / "overlay").mkdir(parents=True, exist_ok=True)
         for o in manifest.objects:
-            m = load_mesh(root / o.mesh, o.id).mesh
+            m = load_mesh(folder / o.mesh, o.id).mesh
             small = decimate_mesh(m, faces)
             rel = f"meshes/overlay/obj_{o.id:06d}.ply"
-            small.export(root / rel)
+            small.export(folder / rel)
             out[o.id] = rel
             o.overlay_mesh = rel
             log(f"{o.name or o.id}: {len(m.faces)} -> {len(small.faces)} faces")

@@ -614,8 +614,8 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
                      "loss_history": state["history"][-20:],
                      **({"init_from": state["init_from"]} if "init_from" in state else {})}
 
-    def change(manifest):  # the bundle as it was is verified; now replace its detector
-        shutil.move(staged, path)
+    def change(manifest, folder):  # the bundle as it was is verified; now replace its detector
+        shutil.move(staged, folder / spec.file)
         manifest.artefacts["detector"] = spec.file
         manifest.detector = d
     update_manifest(root, change)

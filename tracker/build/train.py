@@ -5,7 +5,6 @@ Training needs the ``train`` extra (torch, onnx); the bundle it writes does not.
 from __future__ import annotations
 
 import json
-import shutil
 import sys
 import time
 from pathlib import Path
@@ -246,7 +245,7 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
                  models_info_path=None, codebook_per_object: int = 1500, reg_minutes: float = 5.0,
                  log=print, command: str | None = None, encoder: str = "plain", init_from=None,
                  precision: str = "auto", reg_epochs: int | None = None, lr: float = 1e-3, batch: int = 128,
-                 pretrained: bool = True) -> dict:
+                 pretrained: bool = True) -> Manifest:
     """``encoder``: plain | resnet | lite0 | lite1 | lite2 (an ImageNet-pretrained trunk; with
     ``pretrained=False`` the same network from random weights, the control). ``lr``, ``batch``:
     the autoencoder's AdamW step size and batch."""
@@ -326,69 +325,72 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
         if det and sorted(det.get("classes", [])) == obj_ids and (out / det["file"]).is_file():
             kept_detector = (det, (out / det["file"]).read_bytes())
             log(f"keeping the bundle's detector ({det['file']})")
-    if out.exists():
-        shutil.rmtree(out)
-    (out / "meshes").mkdir(parents=True)
-    save_head(head, out / "pose_head.json", out / "pose_head.npz")
-    save_codebook(codebook, out / "codebook.npz")
-    xs = to_tensor(cs.x[va[:16]]).numpy()
-    diff = export_encoder(model, size, model.n_cond, out / "encoder.onnx", xs, c_all[va[:16]].numpy() if model.n_cond else None)
-    log(f"encoder.onnx: max |onnx - torch| = {diff:.2e}")
-    if diff > 1e-4:
-        raise UserError(f"exported encoder differs from torch by {diff:.2e} (> 1e-4)")
-    from tracker.core.bop import save_models_info
-    models = load_models(mdir, obj_ids)
-    objects = []
-    for o in obj_ids:
-        mesh_rel = f"meshes/obj_{o:06d}.ply"
-        models[o].mesh.export(out / mesh_rel)  # binary PLY with vertex colours
-        info = models_info[o]
-        objects.append(ObjectEntry(id=o, name=LMO_NAMES.get(o, f"obj_{o}"), mesh=mesh_rel, diameter=info["diameter"],
-                                   symmetries_discrete=info.get("symmetries_discrete", []),
-                                   symmetries_continuous=info.get("symmetries_continuous", [])))
-    save_models_info(out / "meshes" / "models_info.json", {o: models_info[o] for o in obj_ids})
-    Kt = np.asarray(synth["config"]["K"])
-    manifest = Manifest(
-        name=out.name, method=method, encoder=encoder, input_size=size, latent_size=latent, objects=objects,
-        training_camera={"K": Kt.tolist(), "width": synth["config"]["width"], "height": synth["config"]["height"],
-                         "focal_mean": focal_mean(Kt)},
-        pose_prior=synth["config"]["prior"],
-        extra={"colour_order": "RGB", "crop": "square on the box, side = longer side, bicubic, pixel values / 255"},
-        artefacts={"encoder": "encoder.onnx", "pose_head": "pose_head.json", "pose_head_arrays": "pose_head.npz",
-                   "codebook": "codebook.npz", "models_info": "meshes/models_info.json"},
-        training={"data": str(data_dir), "synth_images": synth.get("images_written", synth.get("images")),
-                     "crops": len(cs), "train": len(tr), "validation": len(va), "ae_parameters": n_params,
-                     "ae_epochs": len(hist["epoch"]), "ae_best_val_l2": float(min(hist["val_l2"])),
-                     "ae_minutes": round(hist["seconds"][-1] / 60, 1) if hist["seconds"] else 0.0, "total_minutes": round((time.perf_counter() - t0) / 60, 1),
-                     "knn": dist_info["knn"], "seed": seed, "precision": precision, "lr": lr, "batch": batch,
-                     **({"pretrained": pretrained} if encoder not in ("plain", "resnet") else {}),
-                     **({"init_from": str(init_from)} if init_from else {}), "onnx_max_abs_diff": diff},
-        validation_synthetic=val,
-        heads={"rotation_frame": head.rotation_frame, "distance": dist_info["head"],
-               "distance_val_te_median_mm": dist_info["val_te_median_mm"],
-               "distance_by_rotation": dist_info["by_rotation"], "boxes": "jittered and exact",
-               "reg_minutes": None if reg_epochs else reg_minutes, "reg_epochs": reg_epochs},
-        command=command or "app.py " + " ".join(sys.argv[1:]),
-        created=time.strftime("%Y-%m-%d %H:%M:%S"),
-    )
-    if kept_detector is not None:
-        det, blob = kept_detector
-        (out / det["file"]).write_bytes(blob)
-        manifest.detector = det
-        manifest.artefacts["detector"] = det["file"]
-    from tracker.core.bundle import write_manifest
-    write_manifest(out, manifest)
+
+    def _write_bundle(dest: Path, name: str) -> None:
+        (dest / "meshes").mkdir(parents=True, exist_ok=True)
+        save_head(head, dest / "pose_head.json", dest / "pose_head.npz")
+        save_codebook(codebook, dest / "codebook.npz")
+        xs = to_tensor(cs.x[va[:16]]).numpy()
+        diff = export_encoder(model, size, model.n_cond, dest / "encoder.onnx", xs, c_all[va[:16]].numpy() if model.n_cond else None)
+        log(f"encoder.onnx: max |onnx - torch| = {diff:.2e}")
+        if diff > 1e-4:
+            raise UserError(f"exported encoder differs from torch by {diff:.2e} (> 1e-4)")
+        from tracker.core.bop import save_models_info
+        models = load_models(mdir, obj_ids)
+        objects = []
+        for o in obj_ids:
+            mesh_rel = f"meshes/obj_{o:06d}.ply"
+            models[o].mesh.export(dest / mesh_rel)  # binary PLY with vertex colours
+            info = models_info[o]
+            objects.append(ObjectEntry(id=o, name=LMO_NAMES.get(o, f"obj_{o}"), mesh=mesh_rel, diameter=info["diameter"],
+                                       symmetries_discrete=info.get("symmetries_discrete", []),
+                                       symmetries_continuous=info.get("symmetries_continuous", [])))
+        save_models_info(dest / "meshes" / "models_info.json", {o: models_info[o] for o in obj_ids})
+        Kt = np.asarray(synth["config"]["K"])
+        manifest = Manifest(
+            name=name, method=method, encoder=encoder, input_size=size, latent_size=latent, objects=objects,
+            training_camera={"K": Kt.tolist(), "width": synth["config"]["width"], "height": synth["config"]["height"],
+                             "focal_mean": focal_mean(Kt)},
+            pose_prior=synth["config"]["prior"],
+            extra={"colour_order": "RGB", "crop": "square on the box, side = longer side, bicubic, pixel values / 255"},
+            artefacts={"encoder": "encoder.onnx", "pose_head": "pose_head.json", "pose_head_arrays": "pose_head.npz",
+                       "codebook": "codebook.npz", "models_info": "meshes/models_info.json"},
+            training={"data": str(data_dir), "synth_images": synth.get("images_written", synth.get("images")),
+                      "crops": len(cs), "train": len(tr), "validation": len(va), "ae_parameters": n_params,
+                      "ae_epochs": len(hist["epoch"]), "ae_best_val_l2": float(min(hist["val_l2"])),
+                      "ae_minutes": round(hist["seconds"][-1] / 60, 1) if hist["seconds"] else 0.0,
+                      "total_minutes": round((time.perf_counter() - t0) / 60, 1),
+                      "knn": dist_info["knn"], "seed": seed, "precision": precision, "lr": lr, "batch": batch,
+                      **({"pretrained": pretrained} if encoder not in ("plain", "resnet") else {}),
+                      **({"init_from": str(init_from)} if init_from else {}), "onnx_max_abs_diff": diff},
+            validation_synthetic=val,
+            heads={"rotation_frame": head.rotation_frame, "distance": dist_info["head"],
+                   "distance_val_te_median_mm": dist_info["val_te_median_mm"],
+                   "distance_by_rotation": dist_info["by_rotation"], "boxes": "jittered and exact",
+                   "reg_minutes": None if reg_epochs else reg_minutes, "reg_epochs": reg_epochs},
+            command=command or "app.py " + " ".join(sys.argv[1:]),
+            created=time.strftime("%Y-%m-%d %H:%M:%S"),
+        )
+        if kept_detector is not None:
+            det, blob = kept_detector
+            (dest / det["file"]).write_bytes(blob)
+            manifest.detector = det
+            manifest.artefacts["detector"] = det["file"]
+        write_manifest(dest, manifest)
+        add_overlay_meshes(dest, OVERLAY_FACES, log=lambda *a: None)  # light meshes for the live overlay
+
     from tracker.build.decimate import add_overlay_meshes
-    add_overlay_meshes(out, OVERLAY_FACES, log=lambda *a: None)  # light meshes for the live overlay
+    from tracker.core.bundle import read_verified_manifest, staged_bundle, write_manifest
+    with staged_bundle(None, out) as stage:  # the old bundle stays until the new one is whole
+        _write_bundle(stage, out.name)
     total = sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
     log(f"bundle {out}: {total / 1e6:.1f} MB, {(time.perf_counter() - t0) / 60:.1f} min in all")
-    from tracker.core.bundle import read_verified_manifest
     return read_verified_manifest(out)
 
 
 def refit_heads(model_dir, data_dir, out_dir=None, seed: int = 0, reg_minutes: float = 5.0,
                 codebook_per_object: int = 1500, keep_regressors: bool = False, log=print,
-                command: str | None = None, jitter_scale: float | None = None, reg_epochs: int | None = None) -> dict:
+                command: str | None = None, jitter_scale: float | None = None, reg_epochs: int | None = None) -> Manifest:
     """Refit a bundle's regressors and AAE codebook on its frozen encoder (ONNX), without
     retraining the autoencoder; writes the bundle to ``out_dir`` (default: in place).
     ``keep_regressors``: keep its rotation, centre and latent distance regressors and fit only

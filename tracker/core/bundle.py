@@ -11,11 +11,17 @@ import hashlib
 import json
 import shutil
 import tempfile
+import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
 from tracker.core.errors import UserError
 from tracker.core.manifest import FORMAT, MANIFEST, Manifest
+
+# what reading a malformed pose head or codebook can raise (numpy, zipfile, zlib, JSON)
+_UNREADABLE = (ValueError, KeyError, TypeError, OSError, AttributeError, IndexError, EOFError, zipfile.BadZipFile,
+               zlib.error)
 
 
 def sha256(path) -> str:
@@ -81,7 +87,7 @@ class Bundle:
         spec, arrays = self.path("pose_head"), self.path("pose_head_arrays")
         try:
             return load_head(spec, arrays)
-        except (ValueError, KeyError, TypeError, OSError) as e:
+        except _UNREADABLE as e:
             raise UserError(f"{spec}: unreadable pose head ({e.__class__.__name__}: {str(e)[:100]}); the bundle "
                             f"was built broken: rebuild it") from None
 
@@ -91,7 +97,7 @@ class Bundle:
         path = self.path("codebook")
         try:
             return load_codebook(path)
-        except (ValueError, KeyError, TypeError, OSError) as e:
+        except _UNREADABLE as e:
             raise UserError(f"{path}: unreadable codebook ({e.__class__.__name__}: {str(e)[:100]}); the bundle "
                             f"was built broken: rebuild it") from None
 
@@ -111,15 +117,16 @@ class Bundle:
 
 @contextlib.contextmanager
 def staged_bundle(src_root, out):
-    """Where a job writes a changed bundle: yields a copy of the bundle at ``src_root`` in a
-    staging folder beside ``out``; when the block ends without error that folder takes ``out``'s
-    place (``out`` may be ``src_root``: in place). An interrupted job (Ctrl-C, a crash, a refusal)
-    leaves ``out`` as it was and no staging folder behind."""
-    src_root, out = Path(src_root), Path(out)
+    """Where a job writes a changed bundle: yields a copy of the bundle at ``src_root`` (None: an
+    empty folder, for a new bundle) in a staging folder beside ``out``; when the block ends without
+    error that folder takes ``out``'s place (``out`` may be ``src_root``: in place). An interrupted
+    job (Ctrl-C, a crash, a refusal) leaves ``out`` as it was and no staging folder behind."""
+    out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     stage = Path(tempfile.mkdtemp(prefix=f".{out.name}.staging-", dir=out.parent))
     try:
-        shutil.copytree(src_root, stage, dirs_exist_ok=True)
+        if src_root is not None:
+            shutil.copytree(Path(src_root), stage, dirs_exist_ok=True)
         yield stage
     except BaseException:
         shutil.rmtree(stage, ignore_errors=True)
@@ -132,12 +139,15 @@ def staged_bundle(src_root, out):
 
 
 def update_manifest(bundle_dir, change) -> Manifest:
-    """Verify a bundle, let ``change(manifest)`` edit a copy of its manifest (files already
-    written into the folder), then re-hash every file. Returns the new manifest."""
+    """Verify a bundle, then change it through :func:`staged_bundle`: ``change(manifest, folder)``
+    edits a copy of the manifest and writes its files into ``folder`` (a staged copy of the
+    bundle), which is re-hashed and takes the bundle's place only when all of it went well (an
+    interrupted change leaves the bundle as it was). Returns the new manifest."""
     b = open_bundle(bundle_dir)
-    manifest = b.manifest.copy()
-    change(manifest)
-    write_manifest(b.root, manifest)
+    with staged_bundle(b.root, b.root) as stage:
+        manifest = b.manifest.copy()
+        change(manifest, stage)
+        write_manifest(stage, manifest)
     return read_verified_manifest(b.root)
 
 

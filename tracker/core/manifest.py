@@ -29,9 +29,10 @@ class ObjectEntry:
     symmetries_discrete: list = field(default_factory=list)  # flattened 4x4 (BOP)
     symmetries_continuous: list = field(default_factory=list)
     overlay_mesh: str | None = None  # a light mesh for the overlay, relative to the bundle
+    extra: dict = field(default_factory=dict)  # keys this version does not read, kept as they are
 
     def to_dict(self) -> dict:
-        d = {"id": self.id, "name": self.name, "mesh": self.mesh, "diameter": self.diameter,
+        d = {**self.extra, "id": self.id, "name": self.name, "mesh": self.mesh, "diameter": self.diameter,
              "symmetries_discrete": self.symmetries_discrete, "symmetries_continuous": self.symmetries_continuous}
         if self.overlay_mesh is not None:
             d["overlay_mesh"] = self.overlay_mesh
@@ -89,8 +90,9 @@ class Manifest:
                     bad(f"object {o.get('id', '?')}: '{key}' missing or not a {getattr(kind, '__name__', 'number')}")
             if not positive_number(o["diameter"]):
                 bad(f"object {o['id']}: 'diameter' must be positive (mm), not {o['diameter']}")
-            known = {f.name for f in dataclasses.fields(ObjectEntry)}
-            objects.append(ObjectEntry(**{k: v for k, v in o.items() if k in known}))
+            known = {f.name for f in dataclasses.fields(ObjectEntry)} - {"extra"}
+            objects.append(ObjectEntry(**{k: v for k, v in o.items() if k in known},
+                                       extra={k: v for k, v in o.items() if k not in known}))
         for key in ("input_size", "latent_size"):
             v = d.get(key)
             if not isinstance(v, int) or isinstance(v, bool) or v <= 0:
@@ -115,10 +117,10 @@ class Manifest:
     def to_dict(self) -> dict:
         """The one writer's JSON object (``files`` and ``format`` as they are: the bundle writer
         sets them)."""
-        d = {"name": self.name, "method": self.method, "encoder": self.encoder, "input_size": self.input_size,
-             "latent_size": self.latent_size, "objects": [o.to_dict() for o in self.objects],
+        d = {**self.extra, "name": self.name, "method": self.method, "encoder": self.encoder,
+             "input_size": self.input_size, "latent_size": self.latent_size, "objects": [o.to_dict() for o in self.objects],
              "training_camera": self.training_camera, "pose_prior": self.pose_prior, "artefacts": self.artefacts,
-             **self.extra, "training": self.training, "validation_synthetic": self.validation_synthetic,
+             "training": self.training, "validation_synthetic": self.validation_synthetic,
              "heads": self.heads, "command": self.command, "created": self.created}
         if self.detector is not None:
             d["detector"] = self.detector

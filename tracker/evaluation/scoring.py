@@ -160,8 +160,8 @@ def gt_visibility(scene: Scene, models: dict, im_ids, width: int, height: int
     rendered from the known objects at their GT poses (``models``: {obj_id: ObjectModel},
     :func:`tracker.core.visibility.scene_visibility`). Returns the fractions and their source.
     """
-    if all("visib_fract" in g.info for i in im_ids for g in scene.gt[i]):
-        return {i: [float(g.info["visib_fract"]) for g in scene.gt[i]] for i in im_ids}, VISIB_FROM_GT_INFO
+    if all("visib_fract" in g.info for i in im_ids for g in scene.gt.get(i, [])):
+        return {i: [float(g.info["visib_fract"]) for g in scene.gt.get(i, [])] for i in im_ids}, VISIB_FROM_GT_INFO
     recs = rendered_gt_visibility(scene, models, im_ids, width, height)
     return {i: [v.visib_fract for v in recs[i]] for i in im_ids}, VISIB_RENDERED
 
@@ -170,13 +170,13 @@ def rendered_gt_visibility(scene: Scene, models: dict, im_ids, width: int, heigh
     """{im_id: [InstanceVisibility, ...]} of the GT instances, rendered from the known objects."""
     from tracker.runtime.render import Renderer
     from tracker.core.visibility import scene_visibility
-    used = sorted({g.obj_id for i in im_ids for g in scene.gt[i]})
+    used = sorted({g.obj_id for i in im_ids for g in scene.gt.get(i, [])})
     meshes = {k: models[k].mesh for k in used}
     verts = {k: models[k].vertices for k in used}
     out = {}
     with Renderer(width, height, meshes) as full, Renderer(VISIB_WINDOW, VISIB_WINDOW, meshes) as crop:
         for i in im_ids:
-            insts = [(g.obj_id, g.R, g.t) for g in scene.gt[i]]
+            insts = [(g.obj_id, g.R, g.t) for g in scene.gt.get(i, [])]
             out[i] = scene_visibility(full, crop, scene.K(i), insts, verts) if insts else []
     return out
 

@@ -15,6 +15,7 @@ import numpy as np
 from tracker.core.bundle import read_verified_manifest, sha256, staged_bundle, write_manifest
 from tracker.runtime.detector import DetectorSpec, float_detector, letterbox, normalise, run_graph
 from tracker.core.errors import UserError
+from tracker.core.manifest import Manifest
 
 # what every member must share for one letterbox, one normalisation and one decoder to serve all
 CONTRACT = ("classes", "input_w", "input_h", "stride", "mean", "std", "pad_value", "boxes")
@@ -168,7 +169,7 @@ def quantise(float_path, out_path, inputs: np.ndarray) -> None:
 
 
 def join_detectors(model_dir, others, out_dir=None, int8_data=None, calibration_images: int = CALIBRATION_IMAGES,
-                   score_thresh: float | None = None, mirror: str = "none", log=print, command: str | None = None) -> dict:
+                   score_thresh: float | None = None, mirror: str = "none", log=print, command: str | None = None) -> Manifest:
     """Write ``out_dir`` (default: ``model_dir`` in place): ``model_dir``'s bundle whose
     detector averages its own and ``others``' detectors (bundles; only their detectors are
     read), on the image or its mirror image as ``mirror`` says (``member_views``; with

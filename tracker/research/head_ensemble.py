@@ -10,6 +10,7 @@ from pathlib import Path
 from tracker.core.bop import load_models_info, symmetry_rotations
 from tracker.core.bundle import open_bundle, read_verified_manifest, staged_bundle, write_manifest
 from tracker.core.errors import UserError
+from tracker.core.manifest import Manifest
 from tracker.runtime.heads import HeadEnsemble, save_head
 
 
@@ -22,7 +23,7 @@ def _origin(path, manifest) -> dict:
             "jitter_scale": heads.get("jitter_scale"), "seed": heads.get("seed")}
 
 
-def join_heads(model_dir, others, out_dir=None, log=print, command: str | None = None) -> dict:
+def join_heads(model_dir, others, out_dir=None, log=print, command: str | None = None) -> Manifest:
     """Write ``out_dir`` (default: ``model_dir`` in place): ``model_dir``'s bundle with a pose head
     that averages its own head set and those of ``others``. Every bundle must have the very same
     encoder (by SHA-256) and objects; the codebook, detector and meshes stay ``model_dir``'s."""

@@ -17,6 +17,7 @@ from pathlib import Path
 from tracker.core.bop import is_scene_dir
 from tracker.core.bundle import open_bundle, read_verified_manifest, staged_bundle, write_manifest
 from tracker.core.errors import UserError
+from tracker.core.manifest import Manifest
 
 WEIGHTS = (0.0, 0.25, 0.5, 0.75)
 FIGURES = ("add_recall", "ar_mssd", "ar_mspd", "te_median_mm")
@@ -28,7 +29,7 @@ def _scenes(data) -> list[Path]:
 
 
 def tune_trees_weight(model_dir, data, weights=WEIGHTS, out_dir=None, max_frames: int | None = None,
-                      log=print, command: str | None = None) -> dict:
+                      log=print, command: str | None = None) -> Manifest:
     """Write ``out_dir`` (default: ``model_dir`` in place) with ``heads.trees_weight.detector``
     set to the best of ``weights`` on ``data`` (a ``synth`` split or scene: renders, never the
     evaluation frames), ``max_frames`` per scene."""

@@ -1,7 +1,7 @@
 """Pose estimation from boxes: crop -> batched ONNX encoder -> regressors -> poses.
 
-The one code path of evaluation and the live loop. Needs onnxruntime, numpy and
-scikit-learn; never torch.
+The one code path of evaluation and the live loop. Needs onnxruntime and numpy; never torch
+or scikit-learn.
 """
 from __future__ import annotations
 
@@ -48,7 +48,7 @@ def trees_weights(manifest) -> dict[str, float]:
 
 def make_session(path, threads: int = 1):
     """onnxruntime session tuned for a small CPU: fixed threads, no spinning (spinning
-    threads starve scikit-learn and the renderer on 2 cores)."""
+    threads starve the regressors and the renderer on 2 cores)."""
     import onnxruntime as ort
     so = ort.SessionOptions()
     so.intra_op_num_threads = threads

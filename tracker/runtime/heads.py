@@ -27,9 +27,15 @@ from tracker.core.geometry import (box_features, centre_from_box_offset, matrix_
                        rot6d_from_matrix, translation_from_centre)
 
 
-def _count(v) -> int:
-    if not isinstance(v, int) or isinstance(v, bool) or v < 0:
-        raise ValueError(f"expected a count, not {v!r}")
+def _count(v, least: int = 0) -> int:
+    if not isinstance(v, int) or isinstance(v, bool) or v < least:
+        raise ValueError(f"expected a whole number >= {least}, not {v!r}")
+    return v
+
+
+def _mapping(v, what: str) -> dict:
+    if not isinstance(v, dict):
+        raise ValueError(f"{what} is not a mapping")
     return v
 
 
@@ -76,8 +82,19 @@ class MLP:
         m.loss = _choice(spec.get("loss"), ("l1", "l1_rotation"), "an MLP's loss")
         m.mean_, m.scale_ = np.asarray(arrays["mean"], np.float32), np.asarray(arrays["scale"], np.float32)
         m.layers_ = [(np.asarray(arrays[f"W{i}"], np.float32), np.asarray(arrays[f"b{i}"], np.float32))
-                     for i in range(_count(spec.get("layers")))]
+                     for i in range(_count(spec.get("layers"), 1))]
+        width = m.mean_.shape
+        if m.scale_.shape != width or len(width) != 1:
+            raise ValueError("an MLP's mean and scale disagree")
+        for W, b in m.layers_:
+            if W.ndim != 2 or W.shape[0] != width[0] or b.shape != (W.shape[1],):
+                raise ValueError("an MLP's layer shapes do not chain")
+            width = (W.shape[1],)
         return m
+
+    @property
+    def n_out(self) -> int:
+        return self.layers_[-1][0].shape[1]
 
 
 class StackedMLP:
@@ -108,7 +125,7 @@ class StackedMLP:
 class DistanceKNN:
     """Distance-weighted KNN on ``[mu, onehot, box]`` with the box features weighted by
     ``box_weight`` after standardisation (``mean_``, ``scale_``); predicts the log of
-    Tz * sqrt(w' h'). Fitted by :class:`tracker.build.fit_heads.FittedKNN`.
+    Tz * sqrt(w' h'). Fitted by :class:`tracker.build.fit_heads.KNNRegressor`.
 
     Brute-force search in numpy, float32 like the stored training set (the same neighbours
     and weights as scikit-learn's ``KNeighborsRegressor(weights='distance', algorithm='brute')``
@@ -145,9 +162,11 @@ class DistanceKNN:
 
     @classmethod
     def from_arrays(cls, spec: dict, arrays) -> "DistanceKNN":
-        m = cls(k=_count(spec.get("k")), box_weight=float(spec.get("box_weight")), n_box=_count(spec.get("n_box")))
+        m = cls(k=_count(spec.get("k"), 1), box_weight=float(spec.get("box_weight")), n_box=_count(spec.get("n_box")))
         m.mean_, m.scale_ = np.asarray(arrays["mean"], np.float64), np.asarray(arrays["scale"], np.float64)
         m.X_ = np.asarray(arrays["X"], np.float32)
+        if m.X_.ndim != 2 or not len(m.X_) or m.mean_.shape != m.scale_.shape or m.mean_.shape != (m.X_.shape[1],):
+            raise ValueError("a KNN's training set and standardisation disagree")
         m.y_ = np.asarray(arrays["y"], np.float32).reshape(len(m.X_), -1)
         m.sq_ = (m.X_.astype(np.float64) ** 2).sum(1).astype(np.float32)
         return m
@@ -182,6 +201,9 @@ class Trees:
         if not all(len(getattr(m, a)) == n for a in ("threshold_", "missing_left_", "leaf_", "left_", "right_", "value_")) \
                 or any(((i < 0) | (i >= n)).any() for i in (m.roots_, m.left_, m.right_)):
             raise ValueError("the trees' node arrays disagree")
+        inner = np.nonzero(~m.leaf_)[0]  # children come after their node: every walk ends
+        if (m.left_[inner] <= inner).any() or (m.right_[inner] <= inner).any():
+            raise ValueError("the trees' child links do not point forward")
         m.depth_, m.baseline_ = _count(spec.get("depth")), float(spec.get("baseline"))
         m.n_features_in_ = _count(spec.get("n_features"))
         if (m.feature_[~m.leaf_] >= m.n_features_in_).any():
@@ -503,24 +525,33 @@ def head_from_arrays(spec: dict, arrays) -> PoseHead:
     """The inverse of :func:`head_to_arrays`; ``arrays``: a mapping (an open ``np.load``)."""
     if not isinstance(spec, dict) or spec.get("format") != HEAD_FORMAT:
         raise ValueError(f"not a pose head description of format {HEAD_FORMAT}")
+    members = spec.get("members")
+    if not isinstance(members, list):
+        raise ValueError("'members' is not a list")
     heads = []
-    for m in spec.get("members") or []:
+    for m in members:
+        m = _mapping(m, "a member")
         parts = {}
         for slot in _SLOTS:
             r = m.get(slot)
             if r is None:
                 parts[slot] = None
                 continue
+            r = _mapping(r, f"the {slot} regressor")
             kind = _choice(r.get("kind"), tuple(_REGRESSORS), f"the {slot} regressor's kind")
-            parts[slot] = _REGRESSORS[kind].from_arrays(r, _sub(arrays, r["arrays"]))
+            parts[slot] = _REGRESSORS[kind].from_arrays(r, _sub(arrays, str(r.get("arrays"))))
         if parts["rotation"] is None or parts["centre"] is None or parts["distance"] is None:
             raise ValueError("a head needs rotation, centre and distance regressors")
+        for slot, n_out in (("rotation", 6), ("centre", 2)):
+            if not isinstance(parts[slot], MLP) or parts[slot].n_out != n_out:
+                raise ValueError(f"the {slot} regressor must be an MLP with {n_out} outputs")
         heads.append(PoseHead([int(o) for o in m["obj_ids"]], parts["rotation"], parts["centre"], parts["distance"],
                               rotation_frame=m.get("rotation_frame"), distance_by_rotation=parts["distance_by_rotation"]))
     if not heads:
         raise ValueError("no heads")
     if spec.get("kind") == "ensemble":
-        syms = {int(o): np.asarray(S, np.float64).reshape(-1, 3, 3) for o, S in (spec.get("symmetries") or {}).items()}
+        syms = {int(o): np.asarray(S, np.float64).reshape(-1, 3, 3)
+                for o, S in _mapping(spec.get("symmetries") or {}, "'symmetries'").items()}
         return HeadEnsemble(heads, syms)
     if spec.get("kind") != "head" or len(heads) != 1:
         raise ValueError("a 'head' has exactly one member")

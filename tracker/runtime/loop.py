@@ -74,12 +74,16 @@ class RunSummary:
     error: str | None
     accuracy: dict | None = None  # set by tracker.evaluation.track where the source has ground truth
     accuracy_skipped: bool = False
+    # not written: what scoring the run needs
     scene_id: int = 0
-    im_ids: list = field(default_factory=list)  # the frames done, in order (not written)
+    im_ids: list = field(default_factory=list)  # the frames done, in order
+    scene_root: str | None = None  # the BOP scene the frames came from (None: another source)
+    bundle_obj_ids: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
         d = asdict(self)
-        d.pop("im_ids"), d.pop("scene_id")
+        for k in ("im_ids", "scene_id", "scene_root", "bundle_obj_ids"):
+            d.pop(k)
         if d["accuracy"] is None:
             d.pop("accuracy")
         if not d["accuracy_skipped"]:
@@ -110,7 +114,11 @@ def run_track(cfg: TrackConfig, log=print, gt_boxes=None) -> RunSummary:
     out = Path(cfg.out)
     has_detector = est.bundle.manifest.has_detector
     boxes = None
-    if cfg.boxes in ("auto", "gt") and isinstance(src, BopSceneSource) and src.scene.gt and gt_boxes is not None:
+    scene_gt = cfg.boxes in ("auto", "gt") and isinstance(src, BopSceneSource) and bool(src.scene.gt)
+    if scene_gt and gt_boxes is None and cfg.boxes == "gt":
+        raise UserError("--boxes gt: this run was given no source of ground-truth boxes (run it through "
+                        "tracker.evaluation.track.track, as 'app.py track' does)")
+    if scene_gt and gt_boxes is not None:
         boxes = GtBoxes(gt_boxes(src.scene, src.ids, est.bundle), est.obj_ids)
     elif cfg.boxes == "gt":
         raise UserError("--boxes gt needs a BOP scene with scene_gt.json")
@@ -226,7 +234,8 @@ def run_track(cfg: TrackConfig, log=print, gt_boxes=None) -> RunSummary:
         recording=str(rr_sink.path) if rr_sink is not None and rr_sink.path else None,
         error=None if failure is None else (str(failure) if isinstance(failure, UserError)
                                             else f"{type(failure).__name__}: {failure}"),
-        scene_id=scene_id, im_ids=done_ids)
+        scene_id=scene_id, im_ids=done_ids,
+        scene_root=str(src.scene.root) if isinstance(src, BopSceneSource) else None, bundle_obj_ids=list(est.obj_ids))
     summary.save(out)  # at once: an interrupted or failed run keeps it
     if failure is not None:
         raise failure
