@@ -41,3 +41,18 @@ def test_training_passes_keep_a_float32_model_that_learns(tmp_path, precision):
     for p, b in zip(model.parameters(), before):
         assert p.dtype == torch.float32 and p.is_contiguous()  # what the ONNX export gets
     assert any(not torch.equal(p, b) for p, b in zip(model.parameters(), before))
+
+
+def test_the_device_is_a_gpu_only_where_torch_sees_one(monkeypatch):
+    import torch
+
+    from tracker.build.nets.precision import resolve_device
+    from tracker.core.errors import UserError
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert resolve_device("auto") == "cpu" and resolve_device("cpu") == "cpu"
+    with pytest.raises(UserError, match="no CUDA GPU"):
+        resolve_device("cuda")
+    with pytest.raises(UserError, match="unknown device"):
+        resolve_device("tpu")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    assert resolve_device("auto") == "cuda"

@@ -222,7 +222,7 @@ def fit_heads(mu, cs, obj_ids, models_info, tr, va, rng, reg_minutes: float = 5.
 def export_encoder(model, size: int, n_cond: int, path: Path, x_check: np.ndarray, c_check=None) -> float:
     """ONNX with a dynamic batch; returns the max |onnx - torch| on ``x_check``."""
     torch = _torch()
-    enc = model.encoder.eval()
+    enc = model.encoder.cpu().eval()
     x = torch.from_numpy(x_check[:2])
     args = (x,) if not n_cond else (x, torch.from_numpy(c_check[:2]))
     names = ["image"] + (["object"] if n_cond else [])
@@ -245,22 +245,24 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
                  models_info_path=None, codebook_per_object: int = 1500, reg_minutes: float = 5.0,
                  log=print, command: str | None = None, encoder: str = "plain", init_from=None,
                  precision: str = "auto", reg_epochs: int | None = None, lr: float = 1e-3, batch: int = 128,
-                 pretrained: bool = True) -> Manifest:
+                 pretrained: bool = True, device: str = "auto") -> Manifest:
     """``encoder``: plain | resnet | lite0 | lite1 | lite2 (an ImageNet-pretrained trunk; with
     ``pretrained=False`` the same network from random weights, the control). ``lr``, ``batch``:
-    the autoencoder's AdamW step size and batch."""
+    the autoencoder's AdamW step size and batch. ``device``: auto | cpu | cuda (auto: a CUDA GPU
+    where torch sees one)."""
     torch = _torch()
     from tracker.build.crops import CropSet, build_training_crops, crops_cache_path, train_val_split
     from tracker.core.meshes import load_models
     from tracker.build.nets.autoencoder import ENCODERS, METHODS, AutoEncoder
     from tracker.build.nets.fit import encode_all, onehot, to_tensor, train_autoencoder
-    from tracker.build.nets.precision import resolve
+    from tracker.build.nets.precision import resolve, resolve_device
     if method not in METHODS:
         raise UserError(f"unknown method '{method}' (choose from {', '.join(METHODS)})")
     if encoder not in ENCODERS:
         raise UserError(f"unknown encoder '{encoder}' (choose from {', '.join(ENCODERS)})")
     torch.set_num_threads(2)
-    precision = resolve(precision)
+    device = resolve_device(device)
+    precision = resolve(precision, device)
     data_dir, out = Path(data_dir), Path(out_dir)
     cfg_path = data_dir / "synth_config.json"
     if not cfg_path.is_file():
@@ -300,7 +302,7 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
         f"{n_obj} objects, budget {minutes:.0f} min, {precision} training passes")
     hist = train_autoencoder(model, cs.x[tr], cs.y[tr], c_all[tr], cs.x[va], cs.y[va], c_all[va], work,
                              minutes=minutes, seed=seed, init_from=init_from, precision=precision, log=log,
-                             lr=lr, batch=batch)
+                             lr=lr, batch=batch, device=device)
 
     cond = c_all if method == "cvam" else None
     mu = encode_all(model, cs.x, cond)
@@ -360,7 +362,7 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
                       "ae_epochs": len(hist["epoch"]), "ae_best_val_l2": float(min(hist["val_l2"])),
                       "ae_minutes": round(hist["seconds"][-1] / 60, 1) if hist["seconds"] else 0.0,
                       "total_minutes": round((time.perf_counter() - t0) / 60, 1),
-                      "knn": dist_info["knn"], "seed": seed, "precision": precision, "lr": lr, "batch": batch,
+                      "knn": dist_info["knn"], "seed": seed, "precision": precision, "device": device, "lr": lr, "batch": batch,
                       **({"pretrained": pretrained} if encoder not in ("plain", "resnet") else {}),
                       **({"init_from": str(init_from)} if init_from else {}), "onnx_max_abs_diff": diff},
             validation_synthetic=val,

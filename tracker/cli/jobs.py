@@ -200,7 +200,7 @@ def cmd_train(args) -> int:
                      minutes=args.minutes, seed=args.seed, max_images=args.max_images,
                      models_info_path=args.models_info, reg_minutes=args.reg_minutes, encoder=args.encoder,
                      init_from=args.init_from, precision=args.precision, reg_epochs=args.reg_epochs,
-                     lr=args.lr, batch=args.batch, pretrained=not args.no_pretrained,
+                     lr=args.lr, batch=args.batch, pretrained=not args.no_pretrained, device=args.device,
                      command="app.py " + " ".join(sys.argv[1:]))
     _print_validation(args.out, m)
     return 0
@@ -358,6 +358,8 @@ def add_commands(sub, REPO) -> None:
                    help="with --encoder lite*: the same network from random weights (the control)")
     s.add_argument("--lr", type=positive_float, default=1e-3, help="the autoencoder's AdamW learning rate")
     s.add_argument("--batch", type=positive_int, default=128, help="the autoencoder's batch size")
+    s.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto",
+                   help="where the autoencoder trains: a CUDA GPU where torch sees one (auto), or the CPU")
     s.add_argument("--size", type=positive_int, default=64, help="crop side in pixels (thesis: 128)")
     s.add_argument("--latent", type=positive_int, default=128)
     s.add_argument("--minutes", type=positive_float, default=45.0, help="autoencoder time budget")

@@ -1,4 +1,4 @@
-"""Autoencoder training loop (torch, CPU): AdamW, plateau schedule, early stopping on the
+"""Autoencoder training loop (torch; a CUDA GPU when asked for, else the CPU): AdamW, plateau schedule, early stopping on the
 validation L2, the thesis's online augmentations, checkpoints and resume."""
 from __future__ import annotations
 
@@ -76,14 +76,16 @@ def onehot(obj_idx: np.ndarray, n: int) -> torch.Tensor:
 def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, out_dir: Path,
                       minutes: float = 45.0, batch: int = 128, lr: float = 1e-3, patience: int = 50,
                       seed: int = 0, init_from=None, precision: str = "fp32", max_epochs: int = 1000,
-                      log=print) -> dict:
+                      log=print, device: str = "cpu") -> dict:
     """Train until the time budget, early stopping, or ``max_epochs``. Resumes from
     ``out_dir/ae_checkpoint.pt`` when it exists; otherwise ``init_from`` (another run's
     checkpoint) gives the starting weights and optimiser state, with a fresh budget, history
     and best validation loss (the validation crops differ). ``precision`` ('auto', 'bf16' or
     'fp32', see ``precision.resolve``) is the arithmetic of the training passes; validation is float32.
+    ``device``: 'cpu' or 'cuda' (resolved already); batches are cut and augmented on the CPU.
     Returns the training history."""
     torch.manual_seed(seed)
+    model.to(device)
     g = torch.Generator().manual_seed(seed)
     opt = torch.optim.AdamW(model.parameters(), lr=lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=1e-2)
     sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, factor=0.2, patience=3, min_lr=1e-6)
@@ -94,7 +96,7 @@ def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, ou
     source = ckpt if ckpt.is_file() else (Path(init_from) if init_from else None)
     if source is not None:
         try:
-            st = torch.load(source, weights_only=True)  # tensors and plain containers only: no code runs
+            st = torch.load(source, weights_only=True, map_location="cpu")  # tensors and containers only: no code runs
             model.load_state_dict(st["model"])
             opt.load_state_dict(st["opt"])
             sched.load_state_dict(st["sched"])
@@ -116,7 +118,7 @@ def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, ou
         log("--init-from ignored: resuming this run's own checkpoint")
     variational = model.encoder.variational
     cond = model.n_cond > 0
-    precision = prec.resolve(precision)  # 'auto' too; once, not per batch
+    precision = prec.resolve(precision, device)  # 'auto' too; once, not per batch
     prec.channels_last(model)
     n = len(x_tr)
     t_start = time.perf_counter() - spent
@@ -127,10 +129,10 @@ def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, ou
         bar = tqdm(range(0, n, batch), desc=f"epoch {epoch}", unit="batch", leave=False)
         for i in bar:
             idx = np.sort(perm[i:i + batch])
-            xb = prec.channels_last(augment(to_tensor(x_tr[idx]), g))
-            yb = to_tensor(y_tr[idx])
-            cb = c_tr[idx] if cond else None
-            with prec.autocast(precision):
+            xb = prec.channels_last(augment(to_tensor(x_tr[idx]), g).to(device))
+            yb = to_tensor(y_tr[idx]).to(device)
+            cb = c_tr[idx].to(device) if cond else None
+            with prec.autocast(precision, device):
                 recon, mu, logvar = model(xb, cb)
             l2, kl = loss_terms(recon, yb, mu, logvar)
             loss = l2 + (KL_ALPHA * kl if variational else 0.0)
@@ -160,7 +162,7 @@ def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, ou
                     "hist": hist, "spent": spent}, ckpt)
         if since_best >= patience or spent > minutes * 60:
             break
-    model.load_state_dict(torch.load(best_path, weights_only=True))
+    model.load_state_dict(torch.load(best_path, weights_only=True, map_location=device))
     model.to(memory_format=torch.contiguous_format)
     return hist
 
@@ -168,16 +170,18 @@ def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, ou
 @torch.no_grad()
 def evaluate_l2(model, x, y, c=None, batch=256) -> float:
     model.eval()
+    dev = next(model.parameters()).device
     tot = 0.0
     for i in range(0, len(x), batch):
-        recon, mu, logvar = model(to_tensor(x[i:i + batch]), None if c is None else c[i:i + batch])
-        tot += float(((recon - to_tensor(y[i:i + batch])) ** 2).flatten(1).sum(1).sum())
+        recon, mu, logvar = model(to_tensor(x[i:i + batch]).to(dev), None if c is None else c[i:i + batch].to(dev))
+        tot += float(((recon - to_tensor(y[i:i + batch]).to(dev)) ** 2).flatten(1).sum(1).sum())
     return tot / max(len(x), 1)
 
 
 @torch.no_grad()
 def encode_all(model, x, c=None, batch=512) -> np.ndarray:
     model.eval()
-    out = [model.encoder(to_tensor(x[i:i + batch]), None if c is None else c[i:i + batch]).numpy()
+    dev = next(model.parameters()).device
+    out = [model.encoder(to_tensor(x[i:i + batch]).to(dev), None if c is None else c[i:i + batch].to(dev)).cpu().numpy()
            for i in range(0, len(x), batch)]
     return np.concatenate(out).astype(np.float32)

@@ -12,6 +12,21 @@ import contextlib
 from pathlib import Path
 
 PRECISIONS = ("auto", "bf16", "fp32")
+DEVICES = ("auto", "cpu", "cuda")
+
+
+def resolve_device(device: str) -> str:
+    """'auto' -> 'cuda' where torch sees a GPU, else 'cpu'; 'cuda' without one is an error."""
+    import torch
+
+    from tracker.core.errors import UserError
+    if device not in DEVICES:
+        raise UserError(f"unknown device {device!r} (choose from {', '.join(DEVICES)})")
+    if device == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if device == "cuda" and not torch.cuda.is_available():
+        raise UserError("--device cuda: torch sees no CUDA GPU here (use --device cpu or auto)")
+    return device
 
 
 def native_bf16(cpuinfo: str | None = None) -> bool:
@@ -28,20 +43,24 @@ def native_bf16(cpuinfo: str | None = None) -> bool:
     return bool(flags & {"avx512_bf16", "amx_bf16"})
 
 
-def resolve(precision: str) -> str:
-    """'auto' -> 'bf16' on CPUs with native bfloat16, else 'fp32'; the others as given."""
+def resolve(precision: str, device: str = "cpu") -> str:
+    """'auto' -> 'bf16' where the device computes bfloat16 natively (a CPU with AVX512-BF16 or
+    AMX, a GPU that supports it), else 'fp32'; the others as given."""
     if precision not in PRECISIONS:
         raise ValueError(f"unknown precision {precision!r} (choose from {', '.join(PRECISIONS)})")
     if precision == "auto":
+        if device == "cuda":
+            import torch
+            return "bf16" if torch.cuda.is_bf16_supported() else "fp32"
         return "bf16" if native_bf16() else "fp32"
     return precision
 
 
-def autocast(precision: str):
+def autocast(precision: str, device: str = "cpu"):
     """Context for a training forward pass: bfloat16 autocast for 'bf16', nothing for 'fp32'."""
     import torch
     if precision == "bf16":
-        return torch.autocast("cpu", dtype=torch.bfloat16)
+        return torch.autocast(device, dtype=torch.bfloat16)
     return contextlib.nullcontext()
 
 
