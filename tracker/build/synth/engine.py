@@ -237,8 +237,20 @@ def render_one(index: int, out_root: str) -> dict:
             "cam": {"cam_K": K.ravel().tolist(), "depth_scale": DEPTH_SCALE if cfg.depth else 1.0}}
 
 
+# tests make a worker die at one image, as a Mesa segfault would: "INDEX:MARKER_PATH" once
+# (the marker file remembers it), "INDEX:" every time
+CRASH_HOOK = "AUTOPOSE_TEST_SYNTH_CRASH"
+
+
 def _render_batch(args):
     indices, out_root = args
+    hook = os.environ.get(CRASH_HOOK)
+    if hook:
+        at, marker = hook.split(":", 1)
+        if int(at) in indices and not (marker and os.path.exists(marker)):
+            if marker:
+                Path(marker).write_text("crashed")
+            os._exit(139)
     return [render_one(i, out_root) for i in indices]
 
 
@@ -281,6 +293,68 @@ class _ChunkWriter:
                         f.unlink()
 
 
+RETRIES = 3  # pools in a row that may die without finishing a batch before the split is given up
+STALL_S = 600.0  # no batch finished for this long: the workers are taken as hung
+
+
+def _pooled(cfg: SynthConfig, tasks, workers: int, bar):
+    """The batches' records as they finish, rendered by ``workers`` spawned processes
+    (``concurrent.futures``, which notices a worker that dies). A batch whose worker died (a
+    Mesa segfault, say) or hung is rendered again by a fresh pool: images are drawn from their
+    own seeds, so the new render is the same image, and it overwrites any files the lost one
+    left. :data:`RETRIES` pools in a row that die without finishing a batch end the job with an
+    error (a batch that kills every renderer)."""
+    import concurrent.futures as cf
+    ctx = mp.get_context("spawn")
+    pending = dict(enumerate(tasks))
+    fruitless = 0
+    while pending:
+        pool = cf.ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker, initargs=(asdict(cfg),))
+        futures = {pool.submit(_render_batch, pending[k]): k for k in pending}
+        broken, finished_any = False, False
+        try:
+            while futures and not broken:
+                finished, _ = cf.wait(futures, timeout=STALL_S, return_when=cf.FIRST_COMPLETED)
+                if not finished:  # hung: nothing came back for STALL_S seconds
+                    broken = True
+                    break
+                for f in finished:
+                    k = futures.pop(f)
+                    try:
+                        recs = f.result()
+                    except cf.process.BrokenProcessPool:
+                        broken = True
+                        continue
+                    del pending[k]
+                    finished_any = True
+                    yield recs
+        except BaseException:
+            _stop(pool)
+            raise
+        if broken:
+            _stop(pool)
+            fruitless = 0 if finished_any else fruitless + 1
+            if fruitless >= RETRIES:
+                left = sorted(i for k in pending for i in pending[k][0])
+                raise UserError(f"synth: the renderer died {RETRIES} times in a row without finishing an image "
+                                f"(images {left[0]}-{left[-1]} left); run again into a new folder, or with --workers 1")
+            bar.write(f"synth: a render worker died; rendering {sum(len(pending[k][0]) for k in pending)} "
+                      "images again in a fresh pool")
+        else:
+            pool.shutdown(wait=True)
+
+
+def _stop(pool) -> None:
+    """Shut a pool down now: queued batches cancelled, its workers killed (a hung one too)."""
+    procs = list(getattr(pool, "_processes", {}).values())  # (no public way to kill a hung worker)
+    pool.shutdown(wait=False, cancel_futures=True)
+    for p in procs:
+        if p.is_alive():
+            p.kill()
+    for p in procs:
+        p.join(timeout=5)
+
+
 def _peak_rss_mb(who) -> float:
     return resource.getrusage(who).ru_maxrss / 1024.0
 
@@ -321,14 +395,12 @@ def generate(cfg: SynthConfig, out_dir, n_images: int, workers: int = 2, batch: 
     t0 = time.perf_counter()
     from tqdm import tqdm
     bar = tqdm(total=n_images, unit="img", desc="synth", disable=not progress)
-    ctx = mp.get_context("spawn")
-    pool = ctx.Pool(workers, initializer=_init_worker, initargs=(asdict(cfg),)) if workers > 1 else None
-    if pool is None:
+    if workers <= 1:
         _init_worker(asdict(cfg))
+    results = map(_render_batch, tasks) if workers <= 1 else _pooled(cfg, tasks, workers, bar)
     try:
-        it = pool.imap_unordered(_render_batch, tasks) if pool else map(_render_batch, tasks)
         last_flush = time.perf_counter()
-        for recs in it:
+        for recs in results:
             for rec in recs:
                 writer.add(rec)
                 n_inst += len(rec["info"])
@@ -340,21 +412,20 @@ def generate(cfg: SynthConfig, out_dir, n_images: int, workers: int = 2, batch: 
                 last_flush = time.perf_counter()
     except KeyboardInterrupt:
         interrupted = True
-        if pool:
-            pool.terminate()
     finally:
+        if hasattr(results, "close"):
+            results.close()  # the pool's workers stopped (killed, on an interrupt) before the files are settled
         bar.close()
         writer.flush()
-        if pool:
-            if not interrupted:
-                pool.close()
-            pool.join()
-        else:
+        if workers <= 1:
             for k in ("scene", "crop"):
                 if k in _W:
                     _W.pop(k).close()
-        if interrupted:
+        if done < n_images:  # interrupted, or a failure: a consistent split of what was done
             writer.prune((n_images - 1) // CHUNK + 1)
+            if not interrupted:
+                meta.update(images_written=done, failed=True)
+                write_json(out / "synth_config.json", meta)
     dt = time.perf_counter() - t0
     meta.update(images_written=done, seconds=round(dt, 1), interrupted=interrupted)
     write_json(out / "synth_config.json", meta)
