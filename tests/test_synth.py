@@ -366,7 +366,8 @@ def test_a_render_worker_that_dies_is_replaced_and_its_images_rendered_again(dat
 def test_a_batch_that_always_kills_its_worker_ends_the_job_with_an_error(data_dir, tmp_path, monkeypatch):
     from tracker.build.synth import engine
     monkeypatch.setenv(engine.CRASH_HOOK, "3:")  # image 3 kills every worker that renders it
-    with pytest.raises(UserError, match=r"renderer died 3 times in a row .*images 2-"):
+    # which other batches finish before each pool breaks is a race; the failing one is always left
+    with pytest.raises(UserError, match=r"renderer died 3 times in a row .*images [0-3]-[3-5] left"):
         generate(_cfg(data_dir, seed=5), tmp_path / "s", 6, workers=2, batch=2, progress=False)
     meta = json.loads((tmp_path / "s" / "synth_config.json").read_text())
     assert meta["failed"] and meta["images_written"] < 6
