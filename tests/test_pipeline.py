@@ -138,3 +138,27 @@ def test_a_camera_lost_midway_ends_the_run_cleanly_with_its_files(tmp_path, monk
     timings = (out / "timings.csv").read_text().splitlines()
     assert len(timings) == 1 + n and timings[-1].count(",") == timings[0].count(",")  # complete rows, closed
     assert (out / "poses.csv").read_text().startswith("scene_id,im_id,obj_id,score,R,t,time")
+
+
+class DoubtfulEstimator(OracleEstimator):
+    """The oracle's poses with a confidence of 0.1."""
+
+    def estimate(self, rgb, K, dets, timings=None):
+        return [PoseEstimate(p.obj_id, p.R, p.t, 0.1, p.box) for p in super().estimate(rgb, K, dets, timings)]
+
+
+def test_a_pose_below_the_confidence_threshold_is_drawn_as_an_outline_only(scene):
+    boxes_of = {i: [(np.asarray(g.info["bbox_visib"], float), g.info["visib_fract"]) for g in scene.gt[i]]
+                for i in scene.gt}
+    meshes = {k: m.mesh for k, m in load_models(FIX / "models").items()}
+    f0 = _frames(scene)[0]
+    x, y, w, h = (int(v) for v in boxes_of[0][0][0])
+    changed = {}
+    for name, est in (("sure", OracleEstimator(scene)), ("doubtful", DoubtfulEstimator(scene))):
+        est.frame = 0
+        p = Pipeline(est, GtBoxes(boxes_of, known=[1, 2]), meshes=meshes, overlay_downscale=1, min_confidence=0.3)
+        r = p.step(f0)
+        p.close()
+        changed[name] = np.abs(r.overlay.astype(int) - r.rgb.astype(int))[y:y + h, x:x + w].mean()
+    # the rendered object changes much of its box; a dimmed outline only a thin band of it
+    assert changed["sure"] > 10 and 0 < changed["doubtful"] < changed["sure"] / 3, changed

@@ -79,3 +79,37 @@ def test_a_tiny_training_run_with_the_pretrained_trunk_exports_and_estimates(dat
             if g.info["bbox_visib"][2] > 1]
     poses = est.estimate(scene.read_rgb(0), scene.K(0), dets)
     assert poses and all(np.allclose(p.R @ p.R.T, np.eye(3), atol=1e-5) for p in poses)
+
+
+def test_the_trunk_gives_stride_8_16_32_features_at_the_detectors_input():
+    from tracker.build.nets.backbone import LiteTrunk
+    trunk = LiteTrunk("lite0", pretrained=False)
+    with torch.no_grad():
+        f8, f16, f32 = trunk.pyramid(torch.zeros(1, 3, 240, 320))
+    assert [tuple(f.shape[-2:]) for f in (f8, f16)] == [(30, 40), (15, 20)] and f32.shape[-1] == 10
+    assert f32.shape[-2] in (7, 8)  # 15 rows halved (the trunk rounds down)
+    assert trunk.pyramid_channels() == [f8.shape[1], f16.shape[1], f32.shape[1]]
+
+
+def test_a_detector_trains_on_the_pretrained_trunk_and_exports(tiny_bundle, tmp_path):
+    """A tiny run: the ImageNet trunk under the detector's neck and heads, BatchNorm frozen,
+    the spec's normalisation the weights' own, ONNX export within 1e-4 (checked by
+    train_detector), and the run-time detector decodes its output."""
+    import shutil
+    from tracker.build.detector_train import train_detector
+    from tracker.build.nets.detector import IMAGENET_MEAN_STD, CenterNetPretrained
+    from tracker.core.bundle import open_bundle
+    from tracker.runtime.detector import Detector
+    root = tmp_path / "lmo"
+    shutil.copytree(tiny_bundle, root)
+    d = train_detector(tiny_bundle.parent / "split", root, minutes=0.02, width=4, batch=2, input_w=128, input_h=96,
+                       backbone="lite0", log=lambda *a: None)
+    assert (d["mean"], d["std"]) == IMAGENET_MEAN_STD and d["training"]["backbone"] == "lite0"
+    assert d["training"]["pretrained"] and d["training"]["onnx_max_abs_diff"] <= 1e-4
+    det = Detector(open_bundle(root))
+    out = det(np.full((480, 640, 3), 120, np.uint8))
+    assert isinstance(out, list) and all(o.obj_id in open_bundle(root).manifest.obj_ids for o in out)
+    m = CenterNetPretrained(8, 4, "lite0", pretrained=False).train()
+    assert all(not b.training for b in m.trunk.modules() if isinstance(b, torch.nn.BatchNorm2d))
+    with pytest.raises(UserError, match="--backbone"):
+        train_detector(tiny_bundle.parent / "split", root, minutes=0.01, backbone="resnet", log=lambda *a: None)

@@ -33,7 +33,7 @@ CUTOUT_MAX_SIDE = 160  # px a cut-out is kept at; pastes reach 40 % of the input
 CUTOUT_SHARE = 0.5     # share of training images that get cut-outs when --cutouts is given
 # recipe keys added after checkpoints were first written, at the value a run without them records
 RECIPE_ADDED = {"cutouts": None, "cutout_share": 0.0, "boxes": "visible", "frozen_batchnorm": False,
-                "colour": "standard", "ema": 0.0}
+                "colour": "standard", "ema": 0.0, "backbone": "plain", "pretrained": False}
 COLOUR_AUGS = ("standard", "strong", "mild")
 
 
@@ -353,7 +353,7 @@ def augment_batch(x, boxes_list, rng: np.random.Generator, torch, occlusion: flo
     return x.clamp(0, 1), out_boxes
 
 
-def _init_weights(torch, path, width: int, classes: list[int]) -> tuple[dict, bool]:
+def _init_weights(torch, path, width: int, classes: list[int], backbone: str = "plain") -> tuple[dict, bool]:
     """The network weights to start from, checked against this run's width and classes, and
     whether the BatchNorms must stay frozen: another run's checkpoint (tensors and plain
     containers only are read: no code runs), or a bundle whose detector is a single float
@@ -364,6 +364,9 @@ def _init_weights(torch, path, width: int, classes: list[int]) -> tuple[dict, bo
     try:
         z = torch.load(path, weights_only=True)
         ok = isinstance(z, dict) and z.get("width") == width and z.get("classes") == classes
+        theirs = z.get("recipe", {}).get("backbone", "plain") if isinstance(z, dict) else "?"
+        if ok and theirs != backbone:
+            raise UserError(f"--init-from {path}: a detector on the '{theirs}' backbone, this run has --backbone {backbone}")
         if not ok:
             raise UserError(f"--init-from {path}: a detector of width {z.get('width') if isinstance(z, dict) else '?'} "
                             f"and classes {z.get('classes') if isinstance(z, dict) else '?'}, this run has width "
@@ -439,8 +442,11 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
                    val_parts: int = 20, threads: int = 2, init_from=None, occlusion: float = 0.0,
                    paste_objects: float = 0.0, cutouts=None, cutout_share: float | None = None, log=print,
                    command: str | None = None, precision: str = "auto", box_kind: str = "visible",
-                   colour: str = "standard", ema: float = 0.0) -> dict:
-    """``box_kind``: the targets are the objects' visible boxes, or their whole silhouettes'
+                   colour: str = "standard", ema: float = 0.0, backbone: str = "plain",
+                   pretrained: bool = True, device: str = "cpu") -> dict:
+    """``backbone``: ``plain`` (:class:`CenterNetLite` from random weights) or an
+    EfficientNet-Lite trunk (``lite0``..``lite2``, ImageNet weights unless ``pretrained`` is
+    False; BatchNorm frozen; the spec's normalisation becomes the weights'). ``box_kind``: the targets are the objects' visible boxes, or their whole silhouettes'
     (``amodal``, clipped to the image: a box's size and centre then follow the object's
     distance and position behind whatever hides part of it). ``ema`` > 0: validate and export
     the exponential moving average of the weights with this decay (``ema_update``), not the
@@ -449,6 +455,12 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
         raise UserError(f"--boxes must be one of {', '.join(BOX_KINDS)}, not '{box_kind}'")
     if colour not in COLOUR_AUGS:
         raise UserError(f"--colour must be one of {', '.join(COLOUR_AUGS)}, not '{colour}'")
+    from tracker.build.nets.detector import BACKBONES, IMAGENET_MEAN_STD
+    if backbone not in BACKBONES:
+        raise UserError(f"--backbone must be one of {', '.join(BACKBONES)}, not '{backbone}'")
+    if backbone != "plain" and init_from and Path(init_from).is_dir():
+        raise UserError("--init-from BUNDLE reads back a plain detector; with --backbone "
+                        f"{backbone} start from a checkpoint (detector_ckpt_*.pt) instead")
     if not 0.0 <= ema < 1.0:
         raise UserError(f"--ema is a decay in [0, 1) (0: off; 0.999 averages about the last 1,000 steps), not {ema}")
     if paste_objects > 0 and occlusion <= 0:  # before torch is imported: nothing to wait for
@@ -462,20 +474,24 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     from tracker.core.bundle import open_bundle, update_manifest
     from tracker.evaluation.detection_metrics import detection_ap
     from tracker.build.nets import precision as prec
-    from tracker.build.nets.detector import CenterNetLite, focal_loss, freeze_batchnorm
+    from tracker.build.nets.detector import focal_loss, freeze_batchnorm, make_detector
     from tracker.evaluation.report import fmt_num
     bundle = open_bundle(bundle_dir)  # verified before anything is changed
     torch.set_num_threads(threads)
     torch.manual_seed(seed)
-    precision = prec.resolve(precision)
+    device = prec.resolve_device(device)
+    precision = prec.resolve(precision, device)
     spec = DetectorSpec(classes=bundle.manifest.obj_ids, input_w=input_w, input_h=input_h, boxes=box_kind)
+    if backbone != "plain":
+        spec.mean, spec.std = IMAGENET_MEAN_STD
     root = Path(bundle_dir)
     work = work_dir(root)
     work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     # caches and checkpoints are keyed by the data, the classes and the network's shape
     key = hashlib.sha1(json.dumps([str(Path(data_dir).resolve()), spec.classes, input_w, input_h, max_images,
-                                   width] + ([box_kind] if box_kind != "visible" else [])).encode()).hexdigest()[:10]
+                                   width] + ([box_kind] if box_kind != "visible" else [])
+                                  + ([backbone, pretrained] if backbone != "plain" else [])).encode()).hexdigest()[:10]
     images, boxes = load_detection_set(data_dir, spec, work / f"det_images_{key}.npz", max_images, log)
     n = len(images)
     tr, va = train_val_split(n, seed, parts=val_parts)
@@ -484,23 +500,24 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
                         f"make more with 'app.py synth' or pass a smaller --batch")
     C, S = len(spec.classes), spec.stride
     oh, ow = math.ceil(input_h / S), math.ceil(input_w / S)
-    model = CenterNetLite(C, width)
+    model = make_detector(C, width, backbone, pretrained)
     n_params = sum(p.numel() for p in model.parameters())
     opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
     ckpt = work / f"detector_ckpt_{key}.pt"
     state = {"step": 0, "seconds": 0.0, "history": []}
     averaged = None  # the weights' moving average (--ema)
     # weights to start from, and whether its BatchNorms stay frozen (a bundle's exported network)
-    init_weights, frozen = _init_weights(torch, init_from, width, spec.classes) if init_from else (None, False)
+    init_weights, frozen = _init_weights(torch, init_from, width, spec.classes, backbone) if init_from else (None, False)
     # what a resumed run must share with the run that wrote the checkpoint (the data and the
     # network are in the key): otherwise one run silently mixes two augmentations or optimisers.
     # Not --minutes: a larger budget trains a finished run on (docs/experiments/)
     recipe = {"batch": batch, "lr": lr, "seed": seed, "occlusion": occlusion, "paste_objects": paste_objects,
-              **RECIPE_ADDED, "boxes": box_kind, "frozen_batchnorm": frozen, "colour": colour, "ema": ema}
+              **RECIPE_ADDED, "boxes": box_kind, "frozen_batchnorm": frozen, "colour": colour, "ema": ema,
+              "backbone": backbone, "pretrained": pretrained if backbone != "plain" else False}
     if cutouts:
         recipe.update(cutouts=cutout_set, cutout_share=CUTOUT_SHARE if cutout_share is None else cutout_share)
     if ckpt.is_file():
-        z = torch.load(ckpt, weights_only=True)  # tensors and plain containers only: no code runs
+        z = torch.load(ckpt, weights_only=True, map_location="cpu")  # tensors and plain containers only: no code runs
         # checkpoints written before the recipe was kept are trusted; keys added since have their off value
         old = {**RECIPE_ADDED, **z.get("recipe", recipe)}
         if old != recipe:
@@ -524,8 +541,9 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     if ema and averaged is None:  # a new run (a resumed one shares its recipe, so its checkpoint holds the average)
         averaged = {k: v.detach().float().clone() for k, v in model.state_dict().items() if v.is_floating_point()}
     budget = 60.0 * minutes
-    log(f"detector: {n_params / 1e6:.2f} M parameters, {len(tr)} train / {len(va)} validation images, "
-        f"{input_w}x{input_h} input, budget {minutes:.0f} min, {precision} training passes")
+    log(f"detector ({backbone}{', ImageNet weights' if backbone != 'plain' and pretrained else ''}): "
+        f"{n_params / 1e6:.2f} M parameters, {len(tr)} train / {len(va)} validation images, "
+        f"{input_w}x{input_h} input, budget {minutes:.0f} min, {precision} training passes on {device}")
     bar = tqdm(total=int(budget), initial=int(min(state["seconds"], budget)), unit="s", desc="detector")
     last_ckpt = time.perf_counter()
     run_start = time.perf_counter() - state["seconds"]
@@ -539,6 +557,10 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
         model.train()
         if frozen:
             freeze_batchnorm(model)
+        model.to(device)
+        opt.load_state_dict(opt.state_dict())  # moves a resumed optimiser's state to the device
+        if averaged:
+            averaged = {k: v.to(device) for k, v in averaged.items()}
         prec.channels_last(model)
         while state["seconds"] < budget:
             frac = state["seconds"] / budget
@@ -549,9 +571,9 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
             x = torch.from_numpy(images[idx]).permute(0, 3, 1, 2).float().div_(255)
             x, bl = augment_batch(x, [boxes[i] for i in idx], b_rng, torch, occlusion, paste_objects,
                                   cutout_images, recipe["cutout_share"], colour)
-            hm_t, reg_t, mask_t = (torch.from_numpy(a) for a in draw_targets(bl, C, ow, oh, S))
-            with prec.autocast(precision):
-                hm, reg = model.forward_logits(prec.channels_last((x - spec.mean) / spec.std))
+            hm_t, reg_t, mask_t = (torch.from_numpy(a).to(device) for a in draw_targets(bl, C, ow, oh, S))
+            with prec.autocast(precision, device):
+                hm, reg = model.forward_logits(prec.channels_last(((x - spec.mean) / spec.std).to(device)))
             hm, reg = hm.float(), reg.float()
             l_hm = focal_loss(hm, hm_t)
             npos = mask_t.sum().clamp(min=1)
@@ -580,8 +602,9 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
         raise UserError(f"interrupted; checkpoint saved in {ckpt}, rerun the same command to resume") from None
     bar.close()
     save()
+    model.to("cpu")  # validated and exported on the CPU
     if averaged:
-        model.load_state_dict({**model.state_dict(), **averaged})
+        model.load_state_dict({**model.state_dict(), **{k: v.cpu() for k, v in averaged.items()}})
         log(f"validated and exported: the weights' moving average (decay {ema})")
     model.eval()
     model.to(memory_format=torch.contiguous_format)
@@ -608,7 +631,7 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     d["training"] = {"data": str(data_dir), "images": len(tr), "validation": len(va), "parameters": n_params,
                      "width": width, "steps": state["step"], **recipe,
                      **({"cutouts_dir": str(cutouts)} if cutouts else {}),
-                     "minutes": round(state["seconds"] / 60, 1), "precision": precision,
+                     "minutes": round(state["seconds"] / 60, 1), "precision": precision, "device": device,
                      "onnx_max_abs_diff": diff,
                      "validation_synthetic": ap, "command": command or "app.py " + " ".join(sys.argv[1:]),
                      "loss_history": state["history"][-20:],

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 
+
 def _number(kind, low: float, strict: bool, what: str):
     """An argparse type: a finite ``kind`` above ``low`` (or at least it, when not ``strict``)."""
     def parse(text: str):
@@ -19,12 +20,7 @@ def _number(kind, low: float, strict: bool, what: str):
 positive_int = _number(int, 0, True, "a positive integer")
 nonnegative_int = _number(int, 0, False, "an integer >= 0")
 positive_float = _number(float, 0.0, True, "a positive number")
-finite_float = _number(float, float("-inf"), True, "a number")
-
-
-positive_int = _number(int, 0, True, "a positive integer")
-nonnegative_int = _number(int, 0, False, "an integer >= 0")
-positive_float = _number(float, 0.0, True, "a positive number")
+nonnegative_float = _number(float, 0.0, False, "a number >= 0")
 finite_float = _number(float, float("-inf"), True, "a number")
 
 

@@ -1,13 +1,15 @@
 """The user's jobs: ``app.py COMMAND`` (``app.py --help`` lists them)."""
 from __future__ import annotations
 
+import argparse
 import sys
 import time
 from pathlib import Path
 
-from tracker.cli.args import (add_precision, add_regressor_budget, finite_float, fraction, id_list, nonnegative_int,
-                              positive_float, positive_int)
+from tracker.cli.args import (add_precision, add_regressor_budget, finite_float, fraction, id_list, nonnegative_float,
+                              nonnegative_int, positive_float, positive_int)
 from tracker.core.errors import UserError
+from tracker.runtime.confidence import UNCERTAIN_BELOW
 
 
 def _default_run_dir(name: str) -> Path:
@@ -26,7 +28,16 @@ def _print_run(s, out: Path) -> None:
         print(f"accuracy against the ground truth ({s.boxes} boxes, {a['n_gt']} instances): ADD(I) "
               f"{fmt_num(a['add_recall'])}, AR_MSSD {fmt_num(a['ar_mssd'])}, AR_MSPD {fmt_num(a['ar_mspd'])}, "
               f"median RE {fmt_num(a['re_median_deg'], 1)} deg, median TE {fmt_num(a['te_median_mm'], 1)} mm")
+    lost = [k for k, v in s.objects.items() if v["state_at_end"] == "lost"]
+    if s.objects and s.frames:
+        print("frames tracked (confident) per object: " + ", ".join(f"{k} {v['tracked']}/{s.frames}"
+                                                                    for k, v in s.objects.items())
+              + (f"; lost at the end: {', '.join(lost)}" if lost else ""))
     print(f"run folder: {out} (poses.csv, timings.csv, summary.json)")
+    if s.video:
+        print(f"annotated video: {s.video}")
+    if s.frames_dir:
+        print(f"annotated frames: {s.frames_dir}/")
     if s.recording:
         print(f"rerun recording: {s.recording}  (open it with: .venv/bin/rerun {s.recording}, "
               f"or headless: .venv/bin/rerun --serve-web {s.recording})")
@@ -61,10 +72,21 @@ def cmd_demo(args) -> int:
     print(f"demo: {DEMO_RECORDING.relative_to(REPO)} (LM-O dev frames) -> "
           f"{'detector' if boxes == 'detector' else 'ground-truth boxes (no detector in the bundle)'} -> "
           f"models/lmo -> poses, overlay, rerun", file=sys.stderr)
-    s = track(TrackConfig(str(DEMO_RECORDING), str(bundle), out, rerun="save", max_frames=args.max_frames,
-                          boxes=boxes), log=lambda m: print(m, file=sys.stderr))
+    s = track(TrackConfig(str(DEMO_RECORDING), str(bundle), out, rerun=args.rerun, max_frames=args.max_frames,
+                          boxes=boxes, **_outputs(args)), log=lambda m: print(m, file=sys.stderr))
     _print_run(s, out)
+    _hold_viewer(s, args)
     return 130 if s.interrupted else 0
+
+
+def _outputs(args) -> dict:
+    return dict(video_out=args.video_out, frames_out=args.frames_out, min_confidence=args.min_confidence)
+
+
+def _hold_viewer(s, args) -> None:
+    """--rerun serve: the servers outlive the run until Ctrl-C or --serve-for."""
+    if s.viewer is not None:
+        s.viewer.hold(args.serve_for, log=lambda m: print(m, file=sys.stderr))
 
 
 def cmd_track(args) -> int:
@@ -73,9 +95,10 @@ def cmd_track(args) -> int:
     out = Path(args.out) if args.out else _default_run_dir("track")
     cfg = TrackConfig(args.source, args.model, out, args.calib, args.rerun, args.max_frames, args.realtime,
                       not args.no_overlay, args.boxes, detect_every=args.detect_every, smooth=args.smooth,
-                      loop=args.loop)
+                      loop=args.loop, **_outputs(args))
     s = track(cfg, log=lambda m: print(m, file=sys.stderr))
     _print_run(s, out)
+    _hold_viewer(s, args)
     return 130 if s.interrupted else 0
 
 
@@ -213,6 +236,7 @@ def cmd_train_detector(args) -> int:
                        lr=args.lr, init_from=args.init_from, occlusion=args.occlusion, paste_objects=args.paste_objects,
                        cutouts=args.cutouts, cutout_share=args.cutout_share,
                        precision=args.precision, box_kind=args.boxes, colour=args.colour, ema=args.ema,
+                       backbone=args.backbone, pretrained=not args.no_pretrained, device=args.device,
                        command="app.py " + " ".join(sys.argv[1:]))
     v = d["training"]["validation_synthetic"]
     from tracker.evaluation.report import fmt_num
@@ -228,23 +252,74 @@ def cmd_report(args) -> int:
     return 0
 
 
+def _para(text: str) -> str:
+    import textwrap
+    return textwrap.fill(text, 88)
+
+
+RUN_FOLDER_HELP = """the run folder holds:
+  poses.csv       one row per pose (BOP results format; score = the pose's confidence)
+  timings.csv     one row per frame: capture time and milliseconds per stage
+  summary.json    frames, fps, per-stage medians, objects tracked / uncertain / lost, accuracy
+                  where the source has ground truth (docs/formats.md)
+  recording.rrd   the rerun recording (--rerun save or serve): .venv/bin/rerun FILE
+"""
+
+
+def add_output_options(s, rerun_default: str) -> None:
+    """What a run shows and writes besides its logs (track and demo)."""
+    s.add_argument("--rerun", choices=["spawn", "serve", "save", "off"], default=rerun_default,
+                   help="save: write OUT/recording.rrd (default); serve: a web viewer at the printed URL, "
+                        "also saved, kept serving after the run until Ctrl-C or --serve-for; spawn: the native "
+                        "viewer (needs a display); off: nothing")
+    s.add_argument("--serve-for", type=nonnegative_float, default=None, metavar="SECONDS",
+                   help="with --rerun serve: stop serving this long after the run ends (default: at Ctrl-C)")
+    s.add_argument("--video-out", metavar="FILE", help="write the annotated frames as a video (.mp4, .avi or .mkv) "
+                                                       "at the source's frame rate")
+    s.add_argument("--frames-out", metavar="DIR", help="write the annotated frames as numbered PNGs into DIR")
+    s.add_argument("--min-confidence", type=fraction, default=UNCERTAIN_BELOW, metavar="C",
+                   help=f"poses whose confidence (detector score x code similarity x box agreement) is below C "
+                        f"are drawn as uncertain: an outline only, dimmed (default {UNCERTAIN_BELOW})")
+
+
 def add_commands(sub, REPO) -> None:
     """The user's jobs, each a sub-parser of ``sub``."""
-    s = sub.add_parser("demo", help="replay the bundled recording through the pipeline (default)")
+    s = sub.add_parser("demo", help="replay the bundled recording through the pipeline (default)",
+                       description=_para("The bundled recording (demo/lmo_dev: 50 real LM-O frames as a video, with "
+                                   "their ground truth) through the whole pipeline with models/lmo: detector, "
+                                   "crops, encoder, regressors, overlay, rerun; accuracy against the ground truth."),
+                       epilog=RUN_FOLDER_HELP + "\nexamples:\n  python app.py demo\n"
+                              "  python app.py demo --video-out demo.mp4\n"
+                              "  python app.py demo --rerun serve          # then open the printed URL\n",
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
     s.add_argument("--out", help="run folder (default runs/demo-TIMESTAMP)")
-    s.add_argument("--max-frames", type=positive_int, default=None)
+    s.add_argument("--max-frames", type=positive_int, default=None, metavar="N", help="stop after N frames")
+    add_output_options(s, rerun_default="save")
     s.set_defaults(func=cmd_demo)
 
-    s = sub.add_parser("track", help="the frame loop on a camera, video, image folder or BOP scene")
-    s.add_argument("--source", required=True, help="camera index or /dev/videoN, video file, image folder, BOP scene")
-    s.add_argument("--model", default=str(REPO / "models" / "lmo"),
-                   help="model bundle (default models/lmo)")
-    s.add_argument("--calib", help="camera file (needed for cameras, videos and image folders)")
+    s = sub.add_parser("track", help="the frame loop on a camera, video, image folder or BOP scene",
+                       description=_para("Track a bundle's objects in a camera's frames (V4L2 index or /dev/videoN), "
+                                   "a video file, a folder of images or a BOP scene: detector, crops, encoder, "
+                                   "regressors, poses, overlay; logged to the run folder and rerun."),
+                       epilog=RUN_FOLDER_HELP + "\nexamples:\n"
+                              "  python app.py track --source 0 --calib calib/camera.yaml --rerun serve\n"
+                              "  python app.py track --source clip.mp4 --calib calib/camera.yaml --video-out clip_poses.mp4\n"
+                              "  python app.py track --source ../shared/data/lmo/dev --boxes detector\n"
+                              "  python app.py track --source photos/ --calib calib/camera.yaml --model models/duck "
+                              "--frames-out shots/\n",
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    s.add_argument("--source", required=True,
+                   help="camera index (0) or /dev/videoN, a video file, a folder of images, or a BOP scene folder")
+    s.add_argument("--model", default=str(REPO / "models" / "lmo"), help="model bundle (default models/lmo)")
+    s.add_argument("--calib", help="camera file from 'app.py calibrate' (needed for cameras, videos and image "
+                                   "folders; BOP scenes carry their intrinsics)")
     s.add_argument("--out", help="run folder (default runs/track-TIMESTAMP)")
-    s.add_argument("--rerun", choices=["spawn", "serve", "save", "off"], default="save")
-    s.add_argument("--max-frames", type=positive_int)
-    s.add_argument("--realtime", action="store_true", help="play recordings at their recorded rate")
-    s.add_argument("--no-overlay", action="store_true", help="skip rendering the overlay")
+    s.add_argument("--max-frames", type=positive_int, metavar="N", help="stop after N frames (default: the whole source)")
+    s.add_argument("--realtime", action="store_true",
+                   help="play recordings at their recorded rate, dropping frames the tracker cannot keep up with "
+                        "(default: every frame, as fast as it goes)")
+    s.add_argument("--no-overlay", action="store_true", help="skip rendering the overlay (faster; the video and "
+                                                             "rerun get the plain frames)")
     s.add_argument("--loop", action="store_true", help="replay a recording again and again up to --max-frames (soak)")
     s.add_argument("--detect-every", type=positive_int, default=1, metavar="N",
                    help="run the detector every N frames (and whenever an object is lost); in between, "
@@ -253,6 +328,7 @@ def add_commands(sub, REPO) -> None:
                    help="temporal smoothing on SO(3) x R^3, 0 < ALPHA <= 1 (smaller = smoother); off by default")
     s.add_argument("--boxes", choices=["auto", "gt", "detector"], default="auto",
                    help="auto: ground truth on BOP scenes that have it, else the bundle's detector")
+    add_output_options(s, rerun_default="save")
     s.set_defaults(func=cmd_track)
 
     s = sub.add_parser("bench", help="per-stage latency of the live pipeline")
@@ -407,6 +483,13 @@ def add_commands(sub, REPO) -> None:
     s.add_argument("--ema", type=float, default=0.0, metavar="DECAY",
                    help="validate and export the exponential moving average of the weights with this decay "
                         "(e.g. 0.999: about the last 1,000 steps) instead of the last weights; 0: off")
+    s.add_argument("--backbone", choices=["plain", "lite0", "lite1", "lite2"], default="plain",
+                   help="plain: the small convolutional backbone from random weights; lite0-2: an ImageNet-pretrained "
+                        "EfficientNet-Lite trunk (BatchNorm frozen) under the same neck and heads")
+    s.add_argument("--no-pretrained", action="store_true",
+                   help="with --backbone lite*: the same network from random weights (the control)")
+    s.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto",
+                   help="where the detector trains: a CUDA GPU where torch sees one (auto), or the CPU")
     add_precision(s)
     s.set_defaults(func=cmd_train_detector)
 

@@ -308,6 +308,7 @@ def score_estimates(estimates: list[Estimate], scene: Scene, objects: dict[int, 
                                          None if vsd_hit is None else vsd_hit[k]))
     n_est = sum(n_est_obj.values())
     out = _summary(records, n_est)
+    out["confidence"] = confidence_ranking(by_im, scene, objects, visib, im_ids)
     out["n_gt_all"] = n_gt_all
     out["n_images"] = len(im_ids)
     out["recall_by_visibility"] = _by_visibility(records)
@@ -324,6 +325,43 @@ def score_estimates(estimates: list[Estimate], scene: Scene, objects: dict[int, 
     out["detection"] = detection
     out["ms_per_image"] = None if ms_per_image is None else float(ms_per_image)
     return out
+
+
+GOOD_POSE_AR_MSSD = 0.5  # an estimate is "good" when its own AR_MSSD (recall over MSSD_THS) reaches this
+
+
+def ranking_auc(scores, labels) -> float | None:
+    """Area under the ROC curve of ``scores`` separating true ``labels`` from false ones
+    (Mann-Whitney; ties count half); None when one of the classes is empty."""
+    from scipy.stats import rankdata
+    s, y = np.asarray(scores, np.float64), np.asarray(labels, bool)
+    n1, n0 = int(y.sum()), int((~y).sum())
+    if n1 == 0 or n0 == 0:
+        return None
+    ranks = rankdata(s)
+    return float((ranks[y].sum() - n1 * (n1 + 1) / 2) / (n1 * n0))
+
+
+def confidence_ranking(by_im: dict, scene: Scene, objects: dict, visib: dict, im_ids) -> dict:
+    """How well the estimates' scores rank good poses above bad ones: every estimate (not only
+    the top ones scoring uses) is good when its AR_MSSD against the closest valid instance of
+    its object in the image is >= :data:`GOOD_POSE_AR_MSSD` (estimates of objects that are not
+    in the image are bad); ``auc``: :func:`ranking_auc` of the scores."""
+    scores, good = [], []
+    for i in im_ids:
+        gts, vis = scene.gt[i], visib[i]
+        for oid, lst in by_im.get(i, {}).items():
+            targets = [g for j, g in enumerate(gts) if g.obj_id == oid and vis[j] >= VISIB_GT_MIN]
+            for e in lst:
+                ar = 0.0
+                for g in targets:
+                    o = objects[oid]
+                    err = metrics.mssd(e.R, e.t, g.R, g.t, o.hull, o.syms) / o.diameter
+                    ar = max(ar, float(np.mean(err < MSSD_THS)))
+                scores.append(e.score)
+                good.append(ar >= GOOD_POSE_AR_MSSD)
+    return {"auc": ranking_auc(scores, good), "n_estimates": len(scores), "n_good": int(np.sum(good)),
+            "good_if_ar_mssd_at_least": GOOD_POSE_AR_MSSD}
 
 
 def _mean_or_none(x) -> float | None:

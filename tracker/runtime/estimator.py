@@ -15,6 +15,7 @@ import numpy as np
 from tracker.core.bundle import Bundle, open_bundle
 from tracker.core.errors import UserError
 from tracker.core.geometry import crop_and_resize, square_crop
+from tracker.runtime.confidence import box_agreement, code_similarity, confidence
 
 
 @dataclass
@@ -30,8 +31,9 @@ class PoseEstimate:
     obj_id: int
     R: np.ndarray
     t: np.ndarray
-    score: float
+    score: float  # the pose's confidence (:mod:`tracker.runtime.confidence`), BOP's score column
     box: np.ndarray
+    detector_score: float = 1.0  # the box's own score (1 for ground truth)
 
 
 def trees_weights(manifest) -> dict[str, float]:
@@ -86,6 +88,8 @@ class PoseEstimator:
             from threadpoolctl import ThreadpoolController
             self._pools = ThreadpoolController()
         shape = self.session.get_inputs()[0].shape
+        self._codes = None  # {obj_id: L2-normalised codebook codes}, loaded on first use
+        self._points: dict[int, np.ndarray] = {}  # model points for the box agreement, loaded on first use
         if shape[1:] != [3, self.size, self.size]:
             raise UserError(f"encoder input is {shape[1:]}, the manifest says 3x{self.size}x{self.size}")
         n = self.session.get_outputs()[0].shape[-1]
@@ -134,12 +138,35 @@ class PoseEstimator:
         w = np.array([self.trees_weight["exact" if d.exact else "detector"] for d in dets])
         with self._pools.limit(limits=1) if self._pools is not None else contextlib.nullcontext():
             R, t = self.head.predict(mu, ids, boxes, K, mode=mode, trees_weight=w)
+            out = []
+            sim = self.code_similarity(mu, ids)
+            for d, r, tt, s in zip(dets, R, t, sim):
+                if not (np.all(np.isfinite(r)) and np.all(np.isfinite(tt))):
+                    continue  # NaN from a degenerate crop: no estimate rather than garbage
+                agree = box_agreement(self.points(d.obj_id), K, r, tt, d.box)
+                out.append(PoseEstimate(d.obj_id, r, tt, confidence(d.score, s, agree), d.box, float(d.score)))
         if timings is not None:
             timings["encode"] = 1000 * (t1 - t0)
             timings["regress"] = 1000 * (time.perf_counter() - t1)
-        out = []
-        for d, r, tt in zip(dets, R, t):
-            if not (np.all(np.isfinite(r)) and np.all(np.isfinite(tt))):
-                continue  # NaN from a degenerate crop: no estimate rather than garbage
-            out.append(PoseEstimate(d.obj_id, r, tt, d.score, d.box))
         return out
+
+    def code_similarity(self, mu: np.ndarray, ids) -> np.ndarray:
+        """Each code's cosine similarity to the nearest codebook view of its object (1 where
+        the bundle has no codebook)."""
+        if self._codes is None:
+            has = "codebook" in self.bundle.manifest.artefacts
+            self._codes = {o: c[0] for o, c in self.bundle.load_codebook().codes_.items()} if has else {}
+        out = np.ones(len(mu))
+        for k, o in enumerate(ids):
+            if o in self._codes:
+                out[k] = code_similarity(mu[k:k + 1], self._codes[o])[0]
+        return out
+
+    def points(self, obj_id: int) -> np.ndarray:
+        """About 500 of the object's mesh vertices (its overlay mesh where the bundle has one)."""
+        if obj_id not in self._points:
+            from tracker.core.meshes import load_mesh
+            obj = next(o for o in self.bundle.objects if o.id == obj_id)
+            v = np.asarray(load_mesh(self.bundle.overlay_mesh_path(obj), obj_id).mesh.vertices)
+            self._points[obj_id] = v[:: max(1, len(v) // 500)]
+        return self._points[obj_id]

@@ -7,7 +7,8 @@ from __future__ import annotations
 
 import os
 import time
-from dataclasses import asdict, dataclass, field
+import copy
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +18,7 @@ from tracker.core.camera import Undistorter, read_camera
 from tracker.core.errors import UserError
 from tracker.core.priors import in_prior
 from tracker.runtime.estimator import PoseEstimator
+from tracker.runtime.confidence import UNCERTAIN_BELOW
 from tracker.runtime.pipeline import BoxSchedule, GtBoxes, Pipeline
 from tracker.runtime.signals import Deferred, Stopper
 from tracker.runtime.sinks import STAGES, CsvSink, RerunSink
@@ -45,6 +47,9 @@ class TrackConfig:
     # replay a recorded source again and again until max_frames (a soak test); frames are then
     # numbered 0, 1, 2, ... in the logs, and no accuracy is computed
     loop: bool = False
+    video_out: str | None = None  # the annotated frames as a video (.mp4, .avi, .mkv)
+    frames_out: str | None = None  # ... and/or as numbered PNGs in this folder
+    min_confidence: float = UNCERTAIN_BELOW  # poses below it are drawn and counted as uncertain
 
 
 @dataclass
@@ -72,6 +77,9 @@ class RunSummary:
     rss_mb: dict
     recording: str | None
     error: str | None
+    objects: dict = field(default_factory=dict)  # per object: frames tracked / uncertain / not found
+    video: str | None = None  # the annotated video written (--video-out)
+    frames_dir: str | None = None  # the annotated PNGs written (--frames-out)
     accuracy: dict | None = None  # set by tracker.evaluation.track where the source has ground truth
     accuracy_skipped: bool = False
     # not written: what scoring the run needs
@@ -79,11 +87,12 @@ class RunSummary:
     im_ids: list = field(default_factory=list)  # the frames done, in order
     scene_root: str | None = None  # the BOP scene the frames came from (None: another source)
     bundle_obj_ids: list = field(default_factory=list)
+    # the rerun sink, for a serving viewer to outlive the run (RerunSink.hold); not written
+    viewer: object = None
 
     def to_dict(self) -> dict:
-        d = asdict(self)
-        for k in ("im_ids", "scene_id", "scene_root", "bundle_obj_ids"):
-            d.pop(k)
+        hidden = ("im_ids", "scene_id", "scene_root", "bundle_obj_ids", "viewer")
+        d = copy.deepcopy({f.name: getattr(self, f.name) for f in fields(self) if f.name not in hidden})
         if d["accuracy"] is None:
             d.pop("accuracy")
         if not d["accuracy_skipped"]:
@@ -140,9 +149,15 @@ def run_track(cfg: TrackConfig, log=print, gt_boxes=None) -> RunSummary:
     cam = read_camera(cfg.calib) if cfg.calib else None
     if cam is None and not isinstance(src, BopSceneSource):  # only BOP scenes carry their intrinsics
         raise UserError("this source needs a camera file: pass --calib FILE")
+    from tracker.runtime.status import TrackStatus
+    from tracker.runtime.video import FrameWriter, check_video_path
+    if cfg.video_out:
+        check_video_path(cfg.video_out)
     pipeline = Pipeline(est, boxes, Undistorter(cam) if cam else None, meshes if cfg.overlay else None,
-                        cfg.overlay_downscale, smoother, cfg.obj_ids)
+                        cfg.overlay_downscale, smoother, cfg.obj_ids, cfg.min_confidence)
+    status = TrackStatus(names, cfg.obj_ids or est.obj_ids, cfg.min_confidence)
     out.mkdir(parents=True, exist_ok=True)  # only now: a run that cannot start leaves no empty folder
+    writer = FrameWriter(cfg.video_out, cfg.frames_out, getattr(src, "fps", None))
     csv_sink = CsvSink(out)
     rr_sink = None
     scene_id = _scene_id(cfg.source) if isinstance(src, BopSceneSource) else 0
@@ -182,8 +197,10 @@ def run_track(cfg: TrackConfig, log=print, gt_boxes=None) -> RunSummary:
                 t = time.perf_counter()
                 if rr_sink is None:
                     h, w = r.rgb.shape[:2]
-                    rr_sink = RerunSink(cfg.rerun, out, meshes, names, r.K, (w, h))
-                rr_sink.log_frame(index, r.rgb, r.overlay, r.detections, r.poses)
+                    rr_sink = RerunSink(cfg.rerun, out, meshes, names, r.K, (w, h), overlay=r.overlay is not None)
+                rr_sink.log_frame(index, r.rgb, r.overlay, r.detections, r.poses, status.update(index, r.poses))
+                if writer.active:
+                    writer.write(index, r.overlay if r.overlay is not None else r.rgb)
                 dt_frame = time.perf_counter() - t0
                 ests = [Estimate(scene_id, index, p.obj_id, p.score, p.R, p.t, dt_frame) for p in r.poses]
                 ms["log"] = 1000 * (time.perf_counter() - t)
@@ -213,6 +230,7 @@ def run_track(cfg: TrackConfig, log=print, gt_boxes=None) -> RunSummary:
     finally:
         with Deferred(log, "closing the run's files") as closing:
             csv_sink.close()
+            writer.close()
             src.close()
             if rr_sink is not None:
                 rr_sink.close()
@@ -234,7 +252,10 @@ def run_track(cfg: TrackConfig, log=print, gt_boxes=None) -> RunSummary:
         recording=str(rr_sink.path) if rr_sink is not None and rr_sink.path else None,
         error=None if failure is None else (str(failure) if isinstance(failure, UserError)
                                             else f"{type(failure).__name__}: {failure}"),
-        scene_id=scene_id, im_ids=done_ids,
+        objects=status.summary(),
+        video=str(cfg.video_out) if cfg.video_out and writer.frames else None,
+        frames_dir=str(cfg.frames_out) if cfg.frames_out and writer.frames else None,
+        scene_id=scene_id, im_ids=done_ids, viewer=rr_sink,
         scene_root=str(src.scene.root) if isinstance(src, BopSceneSource) else None, bundle_obj_ids=list(est.obj_ids))
     summary.save(out)  # at once: an interrupted or failed run keeps it
     if failure is not None:

@@ -47,6 +47,22 @@ def draw_axes(img: np.ndarray, K, R, t, length_mm: float) -> None:
         cv2.line(img, o, tuple(int(round(v)) for v in uv[i]), c, 2, cv2.LINE_AA)
 
 
+def draw_uncertain(img: np.ndarray, points: np.ndarray, K, R, t, rgb, label: str | None = None) -> None:
+    """A pose not trusted: only the outline (convex hull) of the object's points projected at
+    it, thin and dimmed, and its label with a question mark; no rendered object, no axes."""
+    if (np.asarray(R) @ np.asarray(points).T + np.asarray(t).reshape(3, 1))[2].min() <= 1.0:
+        return
+    uv = project(points, K, R, t)
+    if not np.all(np.isfinite(uv)) or np.abs(uv).max() > 1e5:
+        return
+    dim = tuple(int(0.5 * c + 0.5 * 128) for c in rgb)
+    hull = cv2.convexHull(np.round(uv).astype(np.int32))
+    cv2.polylines(img, [hull], True, dim, 1, cv2.LINE_AA)
+    if label:
+        x, y = hull[:, 0, 0].min(), hull[:, 0, 1].min()
+        cv2.putText(img, label, (int(x), int(max(y - 4, 10))), cv2.FONT_HERSHEY_SIMPLEX, 0.4, dim, 1, cv2.LINE_AA)
+
+
 def draw_contour(img: np.ndarray, depth: np.ndarray, rgb) -> None:
     m = (depth > 0).astype(np.uint8)
     contours, _ = cv2.findContours(m, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)

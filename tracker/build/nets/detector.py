@@ -1,6 +1,7 @@
-"""A small anchor-free detector (CenterNet-style) for the CPU: a plain conv backbone to
-stride 32, a top-down pathway back to stride 8, and three heads (class centre heatmaps,
-log box size, centre offset). Output contract: ``tracker/detector.py``."""
+"""A small anchor-free detector (CenterNet-style) for the CPU: a backbone to stride 32 (plain
+convolutions from random weights, or an ImageNet-pretrained EfficientNet-Lite), a top-down
+pathway back to stride 8, and three heads (class centre heatmaps, log box size, centre offset).
+Output contract: ``tracker/runtime/detector.py``."""
 from __future__ import annotations
 
 import math
@@ -46,6 +47,52 @@ class CenterNetLite(nn.Module):
         """The exported graph: (B, C + 4, h, w) with sigmoid heatmaps."""
         hm, box = self.forward_logits(x)
         return torch.cat([torch.sigmoid(hm), box], 1)
+
+
+class CenterNetPretrained(nn.Module):
+    """The same heads and top-down pathway as :class:`CenterNetLite` on an ImageNet-pretrained
+    EfficientNet-Lite trunk (:mod:`tracker.build.nets.backbone`, BatchNorm frozen): its stride
+    8 / 16 / 32 features, each brought to ``2 x width`` channels by a 1x1 convolution, merged
+    top-down to stride 8. Takes the weights' input range: the detector spec's mean 127/255 and
+    std 128/255 (:data:`IMAGENET_MEAN_STD`)."""
+
+    def __init__(self, n_classes: int, width: int = 32, trunk: str = "lite0", pretrained: bool = True):
+        super().__init__()
+        from tracker.build.nets.backbone import LiteTrunk
+        w = 2 * width
+        self.n_classes = n_classes
+        self.trunk = LiteTrunk(trunk, pretrained)
+        c8, c16, c32 = self.trunk.pyramid_channels()
+        self.lat8, self.lat16, self.top32 = cbr(c8, w, k=1), cbr(c16, w, k=1), cbr(c32, w, k=1)
+        self.smooth16, self.smooth8 = cbr(w, w), cbr(w, w)
+        self.head_hm = nn.Sequential(cbr(w, w), nn.Conv2d(w, n_classes, 1))
+        self.head_box = nn.Sequential(cbr(w, w), nn.Conv2d(w, 4, 1))
+        nn.init.constant_(self.head_hm[-1].bias, -math.log((1 - 0.01) / 0.01))
+
+    def train(self, mode: bool = True):
+        super().train(mode)
+        self.trunk.train(mode)  # the trunk's BatchNorms stay frozen
+        return self
+
+    def forward_logits(self, x):
+        x8, x16, x32 = self.trunk.pyramid(x)
+        p16 = self.smooth16(self.lat16(x16) + F.interpolate(self.top32(x32), size=x16.shape[-2:], mode="nearest"))
+        p8 = self.smooth8(self.lat8(x8) + F.interpolate(p16, size=x8.shape[-2:], mode="nearest"))
+        return self.head_hm(p8), self.head_box(p8)
+
+    forward = CenterNetLite.forward
+
+
+IMAGENET_MEAN_STD = (127.0 / 255.0, 128.0 / 255.0)  # the pretrained trunks' (255 x - 127) / 128
+BACKBONES = ("plain", "lite0", "lite1", "lite2")
+
+
+def make_detector(n_classes: int, width: int = 32, backbone: str = "plain", pretrained: bool = True) -> nn.Module:
+    """``plain``: :class:`CenterNetLite` from random weights; ``lite0``..``lite2``:
+    :class:`CenterNetPretrained` on that trunk (ImageNet weights unless ``pretrained`` is False)."""
+    if backbone == "plain":
+        return CenterNetLite(n_classes, width)
+    return CenterNetPretrained(n_classes, width, backbone, pretrained)
 
 
 def focal_loss(logits, target):
