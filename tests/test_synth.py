@@ -375,3 +375,34 @@ def test_a_batch_that_always_kills_its_worker_ends_the_job_with_an_error(data_di
     assert 3 not in kept and len(kept) == meta["images_written"]  # what is there is whole and annotated
     rgb = tmp_path / "s" / "000000" / "rgb"
     assert {int(f.name[:6]) for f in rgb.iterdir()} == set(kept) if rgb.is_dir() else not kept
+
+
+def test_shards_joined_are_the_split_rendered_at_once(small_split, tmp_path, data_dir):
+    """synth --shard K/N: disjoint, deterministic parts; joined, the same images and annotations."""
+    from tracker.build.synth.engine import shard_range
+    from tracker.build.synth.join import join_splits
+    assert [list(shard_range(8, (k, 3))) for k in range(3)] == [[0, 1], [2, 3, 4], [5, 6, 7]]
+    with pytest.raises(UserError, match="0 <= K < N"):
+        shard_range(8, (3, 3))
+    parts = []
+    for k in (0, 1, 2):
+        parts.append(tmp_path / f"part{k}")
+        generate(_cfg(data_dir, seed=5), parts[-1], 8, workers=1, progress=False, shard=(k, 3))
+    assert json.loads((parts[1] / "synth_config.json").read_text())["shard"] == [1, 3]
+    join_splits(tmp_path / "joined", parts)
+    whole = load_scene(small_split / "000000", require_gt=True)
+    got = {}
+    for d in sorted((tmp_path / "joined").iterdir()):
+        if d.is_dir():
+            sc = load_scene(d, require_gt=True)
+            for i in sc.im_ids:
+                got[i] = (sc, d)
+    assert sorted(got) == list(range(8))
+    for i, (sc, d) in got.items():
+        assert np.array_equal(sc.read_rgb(i), whole.read_rgb(i)), i
+        assert [g.obj_id for g in sc.gt[i]] == [g.obj_id for g in whole.gt[i]]
+        assert np.allclose([g.t for g in sc.gt[i]], [g.t for g in whole.gt[i]])
+    with pytest.raises(UserError, match="share images 2-4"):
+        join_splits(tmp_path / "twice", [parts[1], parts[1]])
+    with pytest.raises(UserError, match="same settings and seed"):
+        join_splits(tmp_path / "overlap", [small_split, parts[2]])

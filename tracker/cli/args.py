@@ -31,6 +31,17 @@ def fraction(text: str) -> float:
     return v
 
 
+def shard_spec(text: str) -> tuple[int, int]:
+    """'2/8' -> (2, 8): the K-th (from 0) of N parts."""
+    try:
+        k, n = (int(v) for v in text.split("/"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not K/N, e.g. 0/4") from None
+    if not (n >= 1 and 0 <= k < n):
+        raise argparse.ArgumentTypeError(f"'{text}': give K/N with 0 <= K < N, e.g. 0/4 ... 3/4")
+    return k, n
+
+
 def jpeg_quality(text: str) -> int:
     q = _number(int, 1, False, "a JPEG quality from 1 to 100")(text)
     if q > 100:

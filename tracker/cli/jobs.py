@@ -7,7 +7,7 @@ import time
 from pathlib import Path
 
 from tracker.cli.args import (add_precision, add_regressor_budget, finite_float, fraction, id_list, nonnegative_float,
-                              nonnegative_int, positive_float, positive_int)
+                              nonnegative_int, positive_float, positive_int, shard_spec)
 from tracker.core.errors import UserError
 from tracker.runtime.confidence import UNCERTAIN_BELOW
 
@@ -207,7 +207,8 @@ def cmd_synth(args) -> int:
                       seed=args.seed, prior=args.prior, obj_ids=obj_ids, mesh_faces=args.mesh_faces, depth=args.depth,
                       p_table=args.p_table, p_gloss=args.gloss, distractors=args.distractors,
                       lighting=args.lighting)
-    rep = generate(cfg, args.out, args.images, workers=args.workers, command="app.py " + " ".join(sys.argv[1:]))
+    rep = generate(cfg, args.out, args.images, workers=args.workers, command="app.py " + " ".join(sys.argv[1:]),
+                   shard=args.shard)
     state = "INTERRUPTED after" if rep.interrupted else "wrote"
     print(f"{state} {rep.images} images, {rep.instances} instances ({rep.crops_visib_ge_0_1} with visib >= 0.1) "
           f"in {rep.seconds:.0f} s: {rep.images_per_s:.1f} images/s, {rep.crops_per_s:.1f} crops/s, "
@@ -415,6 +416,10 @@ def add_commands(sub, REPO) -> None:
                         "key light from above the table, a weak fill, little ambient (bright tops, dark sides)")
     s.add_argument("--obj-ids", type=id_list, help="comma-separated subset of the models' ids")
     s.add_argument("--workers", type=positive_int, default=2, help="render processes")
+    s.add_argument("--shard", type=shard_spec, metavar="K/N",
+                   help="render only the K-th of N disjoint parts of the split (K = 0 .. N-1), e.g. one per "
+                        "machine of a cluster's array job; 'app.py lab join-splits' joins the parts into the "
+                        "same images as one run")
     s.add_argument("--depth", action="store_true", help="also write depth images (depth/, for VSD)")
     s.add_argument("--mesh-faces", type=positive_int, default=None, metavar="N",
                    help="render the objects decimated to about N faces: faster on the CPU rasteriser, "

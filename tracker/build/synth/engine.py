@@ -359,10 +359,28 @@ def _peak_rss_mb(who) -> float:
     return resource.getrusage(who).ru_maxrss / 1024.0
 
 
+def shard_range(n_images: int, shard: tuple[int, int] | None) -> range:
+    """The images of shard ``(k, n)`` of an ``n_images`` split: the k-th of n contiguous,
+    disjoint blocks that together are the whole split (None: all of it). Every image is drawn
+    from its own index's seeds, so the shards joined (``app.py lab join-splits``) hold the
+    same images as the split rendered at once."""
+    if shard is None:
+        return range(n_images)
+    k, n = shard
+    if not (n >= 1 and 0 <= k < n):
+        raise UserError(f"--shard {k}/{n}: give K/N with 0 <= K < N, e.g. 0/4 ... 3/4")
+    if n > n_images:
+        raise UserError(f"--shard {k}/{n}: more shards than the {n_images} images")
+    return range(k * n_images // n, (k + 1) * n_images // n)
+
+
 def generate(cfg: SynthConfig, out_dir, n_images: int, workers: int = 2, batch: int = 4,
-             progress: bool = True, command: str | None = None) -> SynthReport:
+             progress: bool = True, command: str | None = None, shard: tuple[int, int] | None = None) -> SynthReport:
+    """Render images 0 .. ``n_images`` - 1 of the split ``cfg`` describes into ``out_dir``, or
+    only those of ``shard`` (:func:`shard_range`)."""
     if n_images <= 0:
         raise UserError(f"--images must be positive, got {n_images}")
+    mine = shard_range(n_images, shard)
     if cfg.prior not in priors.PRIORS:
         raise UserError(f"unknown prior '{cfg.prior}' (choose from {', '.join(priors.PRIORS)})")
     if not 0.0 <= cfg.p_table <= 1.0:
@@ -381,20 +399,23 @@ def generate(cfg: SynthConfig, out_dir, n_images: int, workers: int = 2, batch: 
     out = Path(out_dir)
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise UserError(f"--out {out} is not an empty folder: give a new one (old images would be mixed in)")
-    for chunk in range((n_images - 1) // CHUNK + 1):
+    chunks = list(range(mine[0] // CHUNK, mine[-1] // CHUNK + 1))
+    for chunk in chunks:
         for sub in ("rgb", "mask_visib", "clean") + (("depth",) if cfg.depth else ()):
             (out / f"{chunk:06d}" / sub).mkdir(parents=True, exist_ok=True)
-    meta = {"config": asdict(cfg), "images": n_images, "chunk": CHUNK,
+    meta = {"config": asdict(cfg), "images": len(mine), "chunk": CHUNK,
+            **({"shard": list(shard), "split_images": n_images, "first_image": mine[0]} if shard else {}),
             "command": command or " ".join(sys.argv), "created": time.strftime("%Y-%m-%d %H:%M:%S")}
     write_json(out / "synth_config.json", meta)
 
-    tasks = [(list(range(i, min(i + batch, n_images))), str(out)) for i in range(0, n_images, batch)]
+    tasks = [(list(mine[i:i + batch]), str(out)) for i in range(0, len(mine), batch)]
     writer = _ChunkWriter(out)
     done = n_inst = n_crops = 0
     interrupted = False
     t0 = time.perf_counter()
     from tqdm import tqdm
-    bar = tqdm(total=n_images, unit="img", desc="synth", disable=not progress)
+    bar = tqdm(total=len(mine), unit="img", desc="synth" + (f" {shard[0]}/{shard[1]}" if shard else ""),
+               disable=not progress)
     if workers <= 1:
         _init_worker(asdict(cfg))
     results = map(_render_batch, tasks) if workers <= 1 else _pooled(cfg, tasks, workers, bar)
@@ -421,8 +442,8 @@ def generate(cfg: SynthConfig, out_dir, n_images: int, workers: int = 2, batch: 
             for k in ("scene", "crop"):
                 if k in _W:
                     _W.pop(k).close()
-        if done < n_images:  # interrupted, or a failure: a consistent split of what was done
-            writer.prune((n_images - 1) // CHUNK + 1)
+        if done < len(mine):  # interrupted, or a failure: a consistent split of what was done
+            writer.prune(chunks[-1] + 1)
             if not interrupted:
                 meta.update(images_written=done, failed=True)
                 write_json(out / "synth_config.json", meta)

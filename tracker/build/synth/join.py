@@ -36,6 +36,7 @@ def join_splits(out_dir, splits, command: str | None = None) -> dict:
         differ = [k for k in MUST_AGREE if m["config"].get(k) != metas[0]["config"].get(k)]
         if differ:
             raise UserError(f"{s} and {splits[0]} differ in {', '.join(differ)}: they cannot train one bundle")
+    _check_disjoint(splits, metas)
     scenes = [d.resolve() for s in splits for d in split_scene_dirs(s)]
     if out.exists() and any(out.iterdir()):
         raise UserError(f"{out} exists and is not empty; choose a new folder")
@@ -51,3 +52,19 @@ def join_splits(out_dir, splits, command: str | None = None) -> dict:
             "command": command, "created": time.strftime("%Y-%m-%d %H:%M:%S")}
     (out / "synth_config.json").write_text(json.dumps(meta, indent=1))
     return meta
+
+
+def _check_disjoint(splits, metas) -> None:
+    """Splits made with the same settings and seed hold the same images unless they are
+    disjoint shards of one split (``synth --shard K/N``): refuse images twice."""
+    seen: dict[str, list] = {}
+    for s, m in zip(splits, metas):
+        key = json.dumps(m["config"], sort_keys=True)
+        first = int(m.get("first_image", 0))
+        span = (first, first + int(m.get("images", 0)))
+        for other, (a, b) in seen.get(key, []):
+            if span[0] < b and a < span[1]:
+                raise UserError(f"{s} and {other} were made with the same settings and seed and share images "
+                                f"{max(a, span[0])}-{min(b, span[1]) - 1}: join different seeds, or disjoint "
+                                f"shards of one split (synth --shard K/N)")
+        seen.setdefault(key, []).append((s, span))
