@@ -339,12 +339,14 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
             raise UserError(f"exported encoder differs from torch by {diff:.2e} (> 1e-4)")
         from tracker.core.bop import save_models_info
         models = load_models(mdir, obj_ids)
+        from tracker.build.prepare import object_names
+        given = object_names(mdir)  # a folder made by 'lab prepare-models' names its objects
         objects = []
         for o in obj_ids:
             mesh_rel = f"meshes/obj_{o:06d}.ply"
             models[o].mesh.export(dest / mesh_rel)  # binary PLY with vertex colours
             info = models_info[o]
-            objects.append(ObjectEntry(id=o, name=LMO_NAMES.get(o, f"obj_{o}"), mesh=mesh_rel, diameter=info["diameter"],
+            objects.append(ObjectEntry(id=o, name=given.get(o, LMO_NAMES.get(o, f"obj_{o}")), mesh=mesh_rel, diameter=info["diameter"],
                                        symmetries_discrete=info.get("symmetries_discrete", []),
                                        symmetries_continuous=info.get("symmetries_continuous", [])))
         save_models_info(dest / "meshes" / "models_info.json", {o: models_info[o] for o in obj_ids})

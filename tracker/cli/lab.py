@@ -100,6 +100,13 @@ def cmd_models_info(args) -> int:
     return 0
 
 
+def cmd_prepare_models(args) -> int:
+    from tracker.build.prepare import prepare_models
+    rep = prepare_models(args.models, args.out, units=args.units, log=print)
+    print(f"wrote {args.out}: {len(rep)} object(s) in millimetres, models_info.json, names.json")
+    return 0
+
+
 def add_commands(sub, REPO) -> None:
     """The research tools, each a sub-parser of ``sub`` (the ``lab`` group)."""
     s = sub.add_parser("join-splits", help="one training split made of several 'synth' splits (linked)")
@@ -176,6 +183,13 @@ def add_commands(sub, REPO) -> None:
     s.add_argument("--out", help="output folder")
     s.add_argument("--max-frames", type=positive_int, default=None)
     s.set_defaults(func=cmd_preview)
+
+    s = sub.add_parser("prepare-models", help="your meshes (PLY, OBJ, STL, GLB) -> a BOP models folder in mm")
+    s.add_argument("--models", required=True, help="folder of meshes; files named obj_NNNNNN keep their id")
+    s.add_argument("--out", required=True, help="models folder to write (obj_NNNNNN.ply, models_info.json, names.json)")
+    s.add_argument("--units", choices=["auto", "mm", "cm", "m"], default="auto",
+                   help="the meshes' unit; auto refuses a mesh under 5 units across (it looks like metres)")
+    s.set_defaults(func=cmd_prepare_models)
 
     s = sub.add_parser("models-info", help="compute BOP models_info.json (diameter, box, symmetries)")
     s.add_argument("--models", required=True, help="folder of obj_NNNNNN.ply")
