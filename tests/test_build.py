@@ -1,0 +1,80 @@
+"""app.py build: meshes -> a bundle in one budget, stage by stage, cached, resumable, its
+recipe in the manifest. A tiny budget and tiny splits: this exercises the job, not accuracy."""
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("torch")
+from tracker.build import build_bundle as bb  # noqa: E402
+from tracker.core.bundle import open_bundle  # noqa: E402
+from tracker.core.errors import UserError  # noqa: E402
+
+FIX = Path(__file__).parent / "fixtures" / "models"
+
+
+@pytest.fixture()
+def small(monkeypatch):
+    monkeypatch.setattr(bb, "MIN_IMAGES", 8)
+    monkeypatch.setattr(bb, "CHECK_IMAGES", 4)
+    monkeypatch.setattr(bb, "RENDER_RATE", 0.01)  # plan() gives MIN_IMAGES for a budget this small
+
+
+def _meshes(tmp_path):
+    src = tmp_path / "meshes"
+    src.mkdir()
+    for f in ("obj_000001.ply", "obj_000002.ply"):
+        shutil.copy(FIX / f, src / f)
+    return src
+
+
+def test_the_budget_is_split_by_the_documented_rule():
+    p = bb.plan(bb.Recipe(models="m", minutes=100), render_rate=5.0)
+    assert p["encoder_minutes"] == 36 and p["detector_minutes"] == 30 and p["reg_minutes"] == pytest.approx(4 / 3, abs=1e-3)
+    assert p["render_images"] == p["render_det_images"] == int(0.10 * 100 * 60 * 5.0)
+    assert sum(bb.SHARES.values()) == pytest.approx(1.0)
+
+
+def test_build_makes_a_bundle_resumes_and_records_its_recipe(small, tmp_path, monkeypatch):
+    src = _meshes(tmp_path)
+    out = tmp_path / "models" / "mine"
+    recipe = bb.Recipe(models=str(src), minutes=0.05, workers=1, size=32, latent=16)
+    # an interruption while the detector trains: what was done before is kept
+    import tracker.build.detector_train as dt
+    real = dt.train_detector
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(dt, "train_detector", interrupted)
+    logs = []
+    with pytest.raises(KeyboardInterrupt):
+        bb.build(recipe, out, log=logs.append)
+    state = json.loads((tmp_path / "models" / "mine.work" / "build" / "state.json").read_text())
+    assert sorted(state) == ["encoder", "models", "render", "render-det"]
+    monkeypatch.setattr(dt, "train_detector", real)
+    logs = []
+    s = bb.build(recipe, out, log=logs.append)
+    assert sum("done before (cached)" in m for m in logs) == 4  # the same command went on where it stopped
+    b = open_bundle(out)  # verified: every file hashed, the report too
+    assert b.manifest.has_detector and sorted(b.manifest.obj_ids) == [1, 2]
+    assert "report/report.md" in b.manifest.files and "report/samples.png" in b.manifest.files
+    text = (out / "report" / "report.md").read_text()
+    assert "On held-out renders" in text and "| detector |" in text
+    assert set(s["stages"]["check"]) >= {"gt", "detector"}
+    assert not any(p.name.startswith("split") for p in out.iterdir())  # intermediates stay in the work folder
+    again = bb.recipe_from_manifest(out)
+    assert again == recipe
+    logs = []
+    bb.build(again, out, log=logs.append)  # --from-manifest on a finished build: nothing to redo
+    assert sum("done before (cached)" in m for m in logs) == 7
+
+
+def test_build_refuses_bad_input_in_one_line(small, tmp_path):
+    with pytest.raises(UserError, match="not a folder of meshes"):
+        bb.build(bb.Recipe(models=str(tmp_path / "nope"), minutes=0.05), tmp_path / "out", log=lambda m: None)
+    src = _meshes(tmp_path)
+    with pytest.raises(UserError, match="--objects 7"):
+        bb.build(bb.Recipe(models=str(src), minutes=0.05, objects=[1, 7]), tmp_path / "out2", log=lambda m: None)
+    with pytest.raises(UserError, match="no build recipe"):
+        bb.recipe_from_manifest(Path(__file__).parents[1] / "models" / "lmo")

@@ -1,0 +1,273 @@
+"""``app.py build``: from a folder of meshes to a finished tracking bundle, in one time budget.
+
+Stages, run in order; everything they make lives in ``MODEL_DIR.work/`` except the bundle:
+
+1. ``models``    the meshes -> a BOP models folder in mm (:mod:`tracker.build.prepare`)
+2. ``render``    the encoder's synthetic split (``synth``, the chosen pose prior)
+3. ``render-det`` the detector's split (another seed; hard distractors, lit from above: what
+   the detectors of ``models/lmo`` were trained on)
+4. ``encoder``   the autoencoder and its pose heads (``train``)
+5. ``detector``  the detector (``train-detector``)
+6. ``check``     a fresh held-out render split, and ``eval`` on it with ground-truth and
+   detector boxes
+7. ``report``    ``MODEL_DIR.work/build/report.md`` + PNGs: sample renders next to their
+   crops, accuracy per object on the held-out renders, timings
+
+The budget (:func:`plan`): ``--minutes`` is split as 20 % rendering (half per split, at a
+rendering rate measured on the first images), 40 % encoder (of which a tenth for the heads),
+30 % detector, 10 % held-out check and report. Each stage is cached by a hash of its options
+and of the stages it reads; a rerun of the same command skips finished stages, and
+``train``/``train-detector`` resume from their checkpoints. Ctrl-C keeps what is done. The
+recipe (every option and seed, the package versions) goes into the manifest (``build``), so
+``build --from-manifest BUNDLE`` redoes it.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from tracker.core.errors import UserError
+
+SHARES = {"render": 0.10, "render-det": 0.10, "encoder": 0.36, "heads": 0.04, "detector": 0.30, "check": 0.10}
+RENDER_RATE = 5.0  # images per second assumed before the first split measures it (2 workers here)
+MIN_IMAGES = 60
+CHECK_IMAGES = 40
+STAGES = ("models", "render", "render-det", "encoder", "detector", "check", "report")
+# each stage's share of the budget, for the estimate of the time left before it starts
+SHARES_BEFORE = {"models": 0.0, "render": SHARES["render"], "render-det": SHARES["render-det"],
+                 "encoder": SHARES["encoder"] + SHARES["heads"], "detector": SHARES["detector"],
+                 "check": SHARES["check"], "report": 0.0}
+
+
+@dataclass
+class Recipe:
+    """What ``build`` was asked: everything that makes the bundle (and the manifest keeps)."""
+    models: str
+    minutes: float = 60.0
+    objects: list[int] | None = None
+    prior: str = "table"
+    units: str = "auto"
+    seed: int = 0
+    method: str = "cvam"
+    encoder: str = "plain"
+    size: int = 64
+    latent: int = 128
+    detector_backbone: str = "plain"
+    workers: int = 2
+    device: str = "auto"
+    extra: dict = field(default_factory=dict)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Recipe":
+        known = {k: d[k] for k in cls.__dataclass_fields__ if k in d}
+        return cls(**known)
+
+
+def plan(recipe: Recipe, render_rate: float = RENDER_RATE) -> dict:
+    """Minutes per stage and images per split for ``recipe.minutes`` (the rule above)."""
+    m = float(recipe.minutes)
+    images = lambda share: max(MIN_IMAGES, int(share * m * 60 * render_rate))  # noqa: E731
+    return {"render_images": images(SHARES["render"]), "render_det_images": images(SHARES["render-det"]),
+            "encoder_minutes": round(SHARES["encoder"] * m, 3),
+            "reg_minutes": round(SHARES["heads"] * m / 3, 3),  # three MLP regressors
+            "detector_minutes": round(SHARES["detector"] * m, 3), "check_images": CHECK_IMAGES}
+
+
+def versions() -> dict:
+    from importlib.metadata import PackageNotFoundError, version
+    out = {"python": sys.version.split()[0]}
+    for pkg in ("numpy", "onnxruntime", "torch", "trimesh", "pyrender", "opencv-python-headless", "autopose"):
+        try:
+            out[pkg] = version(pkg)
+        except PackageNotFoundError:
+            pass
+    return out
+
+
+class _State:
+    """``MODEL_DIR.work/build/state.json``: per stage the key it was made with and its result."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.d = json.loads(path.read_text()) if path.is_file() else {}
+
+    def done(self, stage: str, key: str) -> dict | None:
+        s = self.d.get(stage)
+        return s if s and s.get("key") == key and s.get("done") else None
+
+    def mark(self, stage: str, key: str, **result) -> None:
+        self.d[stage] = {"key": key, "done": True, **result}
+        tmp = self.path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(self.d, indent=1))
+        tmp.replace(self.path)
+
+
+def _key(*parts) -> str:
+    return hashlib.sha1(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:12]
+
+
+def build(recipe: Recipe, out_dir, log=print) -> dict:
+    """Run (or resume) every stage; returns the report's summary."""
+    from tracker.core.paths import shared_data, work_dir
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise UserError(f"--out {out} is a file; give a folder for the bundle")
+    if recipe.prior not in ("table", "sphere"):
+        raise UserError(f"--prior must be table or sphere, not '{recipe.prior}'")
+    if not recipe.minutes > 0:
+        raise UserError(f"--minutes must be positive, not {recipe.minutes}")
+    root = work_dir(out) / "build"
+    root.mkdir(parents=True, exist_ok=True)
+    state = _State(root / "state.json")
+    t_start = time.perf_counter()
+    summary = {"stages": {}}
+
+    def stage(i: int, name: str, key: str, run):
+        """Skip a stage made with the same key; else (re)do it and record what it gave."""
+        done = state.done(name, key)
+        if done:
+            log(f"[{i}/{len(STAGES)}] {name}: done before (cached)")
+            summary["stages"][name] = done
+            return done
+        spent = (time.perf_counter() - t_start) / 60
+        log(f"[{i}/{len(STAGES)}] {name}: {spent:.1f} min used this run, about "
+            f"{max(0.0, recipe.minutes * (1 - sum(SHARES_BEFORE[s] for s in STAGES[:i - 1])) ):.1f} min of the budget left")
+        t = time.perf_counter()
+        result = run() or {}
+        result["seconds"] = round(time.perf_counter() - t, 1)
+        state.mark(name, key, **result)
+        summary["stages"][name] = state.d[name]
+        return state.d[name]
+
+    # 1. meshes -> BOP models folder
+    models_dir = root / "models"
+    src_files = sorted((str(p), p.stat().st_size, p.stat().st_mtime_ns) for p in Path(recipe.models).glob("*")
+                       if p.is_file()) if Path(recipe.models).is_dir() else []
+    k_models = _key("models", src_files, recipe.units, recipe.objects)
+
+    def do_models():
+        from tracker.build.prepare import prepare_models
+        shutil.rmtree(models_dir, ignore_errors=True)
+        rep = prepare_models(recipe.models, models_dir, units=recipe.units, log=log)
+        if recipe.objects:
+            unknown = sorted(set(recipe.objects) - set(rep))
+            if unknown:
+                raise UserError(f"--objects {','.join(map(str, unknown))}: not among the meshes' ids {sorted(rep)}")
+        return {"objects": {str(k): v["name"] for k, v in rep.items()}}
+    got = stage(1, "models", k_models, do_models)
+    obj_ids = recipe.objects or sorted(int(k) for k in got["objects"])
+
+    # 2-3. the synthetic splits
+    from tracker.build.synth.engine import SynthConfig, generate
+    backgrounds = str(shared_data() / "backgrounds")
+    rate = float(state.d.get("render", {}).get("images_per_s", RENDER_RATE))
+    p = plan(recipe)
+
+    def render(split: Path, n: int, seed: int, **opts):
+        def run():
+            shutil.rmtree(split, ignore_errors=True)  # a split left half-made by an interruption
+            cfg = SynthConfig(models_dir=str(models_dir), backgrounds_dir=backgrounds, seed=seed, prior=recipe.prior,
+                              obj_ids=list(obj_ids), **opts)
+            rep = generate(cfg, split, n, workers=recipe.workers, command=f"build stage {split.name}")
+            if rep.interrupted:
+                raise KeyboardInterrupt
+            return {"images": rep.images, "images_per_s": round(rep.images_per_s, 2)}
+        return run
+
+    split_enc, split_det = root / "split_encoder", root / "split_detector"
+    k_render = _key("render", k_models, p["render_images"], recipe.seed, recipe.prior, obj_ids)
+    got = stage(2, "render", k_render, render(split_enc, p["render_images"], recipe.seed))
+    rate = got.get("images_per_s", rate)
+    p_det = plan(recipe, rate)  # the detector's split sized at the rate measured on the first
+    det_opts = {"distractors": "hard", "lighting": "overhead"}
+    k_render_det = _key("render-det", k_models, p_det["render_det_images"], recipe.seed, recipe.prior, obj_ids, det_opts)
+    stage(3, "render-det", k_render_det, render(split_det, p_det["render_det_images"], recipe.seed + 1, **det_opts))
+
+    # 4. encoder and heads
+    k_enc = _key("encoder", k_render, recipe.method, recipe.encoder, recipe.size, recipe.latent,
+                 p["encoder_minutes"], p["reg_minutes"], recipe.seed)
+
+    def do_encoder():
+        from tracker.build.train import train_bundle
+        prev = state.d.get("encoder", {}).get("key")
+        if prev and prev != k_enc:  # another recipe: its checkpoints must not be resumed
+            for f in ("ae_checkpoint.pt", "ae_best.pt"):
+                (work_dir(out) / f).unlink(missing_ok=True)
+        m = train_bundle(split_enc, out, method=recipe.method, size=recipe.size, latent=recipe.latent,
+                         minutes=p["encoder_minutes"], seed=recipe.seed, reg_minutes=p["reg_minutes"],
+                         models_info_path=models_dir / "models_info.json", log=log, encoder=recipe.encoder,
+                         device=recipe.device, command=f"app.py build --models {recipe.models} --out {out}")
+        v = m.validation_synthetic
+        return {"re_median_deg": v["regression"]["re_median_deg"], "te_median_mm": v["regression"]["te_median_mm"]}
+    stage(4, "encoder", k_enc, do_encoder)
+
+    # 5. detector
+    k_det = _key("detector", k_enc, k_render_det, p["detector_minutes"], recipe.detector_backbone, recipe.seed)
+
+    def do_detector():
+        from tracker.build.detector_train import train_detector
+        n = int(state.d["render-det"]["images"])  # a tiny budget's split may hold less than a batch
+        d = train_detector(split_det, out, minutes=p["detector_minutes"], seed=recipe.seed, occlusion=0.5,
+                           batch=min(32, max(2, n // 2)),
+                           backbone=recipe.detector_backbone, device=recipe.device, log=log,
+                           command=f"app.py build --models {recipe.models} --out {out}")
+        v = d["training"]["validation_synthetic"]
+        return {"ap": v["ap"], "ap50": v["ap50"]}
+    stage(5, "detector", k_det, do_detector)
+
+    # 6. held-out check on fresh renders
+    split_check = root / "split_check"
+    k_check = _key("check", k_det, k_models, CHECK_IMAGES, recipe.seed)
+
+    def do_check():
+        from tracker.evaluation.evaluate import evaluate
+        render(split_check, CHECK_IMAGES, recipe.seed + 1000)()
+        res = {}
+        for boxes in ("gt", "detector"):
+            m = evaluate(out, split_check / "000000", root / f"check_{boxes}.json", boxes=boxes,
+                         bop_csv=root / f"check_{boxes}.csv", progress=False)
+            res[boxes] = {k: m[k] for k in ("add_recall", "ar_mssd", "ar_mspd", "re_median_deg", "te_median_mm")}
+            res[boxes]["per_object"] = {o: {k: v.get(k) for k in ("n_gt", "add_recall", "ar_mssd", "ar_mspd")}
+                                        for o, v in m["per_object"].items()}
+            if boxes == "detector":
+                res[boxes]["ap50"] = m["detection"]["ap50"]
+            res[boxes]["ms_per_image"] = m["ms_per_image"]
+        return res
+    stage(6, "check", k_check, do_check)
+
+    # 7. report, and the recipe into the manifest
+    def do_report():
+        _record_recipe(out, root, recipe, plan(recipe, rate), state.d)
+        return {"report": str(out / "report" / "report.md")}
+    stage(7, "report", _key("report", k_check, asdict(recipe)), do_report)
+    summary["minutes"] = round((time.perf_counter() - t_start) / 60, 1)
+    summary["budget_minutes"] = recipe.minutes
+    summary["report"] = state.d["report"]["report"]
+    return summary
+
+
+def _record_recipe(out: Path, root: Path, recipe: Recipe, planned: dict, stages: dict) -> None:
+    """The report into the bundle (report/) and the recipe into its manifest, in one staged write."""
+    from tracker.build.build_report import write_build_report
+    from tracker.core.bundle import update_manifest
+
+    def change(manifest, folder):
+        write_build_report(folder, root, stages, recipe, planned, stages["models"]["objects"])
+        manifest.extra["build"] = {"recipe": asdict(recipe), "plan": planned, "versions": versions(),
+                                   "stage_seconds": {k: v.get("seconds") for k, v in stages.items()}}
+    update_manifest(out, change)
+
+
+def recipe_from_manifest(bundle_dir) -> Recipe:
+    """``build --from-manifest``: the recipe a built bundle records."""
+    from tracker.core.bundle import open_bundle
+    b = open_bundle(bundle_dir)
+    rec = b.manifest.extra.get("build", {}).get("recipe")
+    if not isinstance(rec, dict):
+        raise UserError(f"{bundle_dir}: its manifest records no build recipe (it was not made by 'app.py build')")
+    return Recipe.from_dict(rec)
