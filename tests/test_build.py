@@ -73,6 +73,7 @@ def test_build_makes_a_bundle_resumes_and_records_its_recipe(small, tmp_path, mo
 def test_build_refuses_bad_input_in_one_line(small, tmp_path):
     with pytest.raises(UserError, match="not a folder of meshes"):
         bb.build(bb.Recipe(models=str(tmp_path / "nope"), minutes=0.05), tmp_path / "out", log=lambda m: None)
+    assert not (tmp_path / "out.work").exists()
     src = _meshes(tmp_path)
     with pytest.raises(UserError, match="--objects 7"):
         bb.build(bb.Recipe(models=str(src), minutes=0.05, objects=[1, 7]), tmp_path / "out2", log=lambda m: None)

@@ -121,6 +121,8 @@ def build(recipe: Recipe, out_dir, log=print) -> dict:
         raise UserError(f"--prior must be table or sphere, not '{recipe.prior}'")
     if not recipe.minutes > 0:
         raise UserError(f"--minutes must be positive, not {recipe.minutes}")
+    from tracker.build.prepare import mesh_files
+    mesh_files(recipe.models)  # a bad --models fails before anything is written
     root = work_dir(out) / "build"
     root.mkdir(parents=True, exist_ok=True)
     state = _State(root / "state.json")
