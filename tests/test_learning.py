@@ -2,12 +2,14 @@
 camera independence of the pose head. Accuracy is measured by `app.py eval`, not here."""
 import json
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 pytest.importorskip("torch")
 
+from tests.conftest import REPO  # noqa: E402
 from tracker.core.bop import load_scene  # noqa: E402
 from tracker.core.bundle import open_bundle  # noqa: E402
 from tracker.core.errors import UserError  # noqa: E402
@@ -511,3 +513,24 @@ def test_join_heads_averages_refitted_heads_and_refuses_another_encoder(tiny_bun
         join_heads(tiny_bundle, [other], out_dir=tmp_path / "bad", log=lambda *a: None)
     with pytest.raises(UserError, match="averages 2 head sets"):
         refit_heads(tmp_path / "joined", split, out_dir=tmp_path / "kept", keep_regressors=True, log=lambda *a: None)
+
+
+def test_training_runs_under_torchrun_with_two_processes(tiny_bundle, tmp_path):
+    """DistributedDataParallel with gloo on this CPU: two processes train the autoencoder
+    together; the first writes the bundle, which records both."""
+    import os
+    import subprocess
+    import sys
+    torchrun = Path(sys.executable).parent / "torchrun"
+    out = tmp_path / "ddp"
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    r = subprocess.run([str(torchrun), "--nproc_per_node", "2", "--master_port", "29517", str(REPO / "app.py"), "train",
+                        "--data", str(tiny_bundle.parent / "split"), "--out", str(out), "--size", "32", "--latent", "16",
+                        "--minutes", "0.05", "--reg-epochs", "1", "--batch", "8",
+                        "--models-info", str(REPO / "models" / "lmo_models_info.json"), "--device", "cpu"],
+                       capture_output=True, text=True, timeout=600, env=env, cwd=REPO)
+    assert r.returncode == 0, r.stderr[-2000:]
+    from tracker.core.bundle import open_bundle
+    m = open_bundle(out).manifest
+    assert m.training["processes"] == 2 and m.training["ae_epochs"] >= 1
+    assert r.stdout.count("wrote ") == 1  # one report, from the first process

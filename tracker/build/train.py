@@ -5,6 +5,7 @@ Training needs the ``train`` extra (torch, onnx); the bundle it writes does not.
 from __future__ import annotations
 
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -245,11 +246,13 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
                  models_info_path=None, codebook_per_object: int = 1500, reg_minutes: float = 5.0,
                  log=print, command: str | None = None, encoder: str = "plain", init_from=None,
                  precision: str = "auto", reg_epochs: int | None = None, lr: float = 1e-3, batch: int = 128,
-                 pretrained: bool = True, device: str = "auto") -> Manifest:
+                 pretrained: bool = True, device: str = "auto") -> Manifest | None:
     """``encoder``: plain | resnet | lite0 | lite1 | lite2 (an ImageNet-pretrained trunk; with
     ``pretrained=False`` the same network from random weights, the control). ``lr``, ``batch``:
     the autoencoder's AdamW step size and batch. ``device``: auto | cpu | cuda (auto: a CUDA GPU
-    where torch sees one)."""
+    where torch sees one). Under ``torchrun --nproc_per_node N`` the N processes train the
+    autoencoder together (each takes 1/N of every batch: the same recipe, N times the compute);
+    the first one then fits the heads and writes the bundle, the others return None."""
     torch = _torch()
     from tracker.build.crops import CropSet, build_training_crops, crops_cache_path, train_val_split
     from tracker.core.meshes import load_models
@@ -260,8 +263,12 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
         raise UserError(f"unknown method '{method}' (choose from {', '.join(METHODS)})")
     if encoder not in ENCODERS:
         raise UserError(f"unknown encoder '{encoder}' (choose from {', '.join(ENCODERS)})")
-    torch.set_num_threads(2)
+    from tracker.build.nets import distributed as dd
     device = resolve_device(device)
+    rank, n_proc = dd.init_from_env(device)  # under torchrun: several processes train the autoencoder
+    torch.set_num_threads(2 if n_proc == 1 else max(1, (os.cpu_count() or 2) // n_proc))
+    if rank != 0:
+        log = lambda *a, **k: None  # noqa: E731  (the first process reports)
     precision = resolve(precision, device)
     data_dir, out = Path(data_dir), Path(out_dir)
     cfg_path = data_dir / "synth_config.json"
@@ -285,7 +292,11 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
                 f"({time.perf_counter() - t1:.0f} s)")
         return c
 
-    cs = crops(jitter=True)  # the autoencoder learns from detector-like boxes
+    if rank == 0:
+        cs = crops(jitter=True)  # the autoencoder learns from detector-like boxes
+    dd.barrier()  # the other processes read the crops the first one cut and cached
+    if rank != 0:
+        cs = crops(jitter=True)
     obj_ids = sorted(int(o) for o in np.unique(cs.obj_id))
     lut = {o: i for i, o in enumerate(obj_ids)}
     idx = np.array([lut[int(o)] for o in cs.obj_id])
@@ -304,6 +315,10 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
                              minutes=minutes, seed=seed, init_from=init_from, precision=precision, log=log,
                              lr=lr, batch=batch, device=device)
 
+    if rank != 0:  # the heads, the codebook and the export are the first process's
+        dd.finish()
+        return None
+    dd.finish()
     cond = c_all if method == "cvam" else None
     mu = encode_all(model, cs.x, cond)
     cs_exact = crops(jitter=False)
@@ -365,6 +380,7 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
                       "ae_minutes": round(hist["seconds"][-1] / 60, 1) if hist["seconds"] else 0.0,
                       "total_minutes": round((time.perf_counter() - t0) / 60, 1),
                       "knn": dist_info["knn"], "seed": seed, "precision": precision, "device": device, "lr": lr, "batch": batch,
+                      **({"processes": n_proc} if n_proc > 1 else {}),
                       **({"pretrained": pretrained} if encoder not in ("plain", "resnet") else {}),
                       **({"init_from": str(init_from)} if init_from else {}), "onnx_max_abs_diff": diff},
             validation_synthetic=val,

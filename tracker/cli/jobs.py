@@ -226,6 +226,8 @@ def cmd_train(args) -> int:
                      init_from=args.init_from, precision=args.precision, reg_epochs=args.reg_epochs,
                      lr=args.lr, batch=args.batch, pretrained=not args.no_pretrained, device=args.device,
                      command="app.py " + " ".join(sys.argv[1:]))
+    if m is None:  # a helper process of a torchrun job: the first process writes the bundle
+        return 0
     _print_validation(args.out, m)
     return 0
 

@@ -84,8 +84,15 @@ def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, ou
     'fp32', see ``precision.resolve``) is the arithmetic of the training passes; validation is float32.
     ``device``: 'cpu' or 'cuda' (resolved already); batches are cut and augmented on the CPU.
     Returns the training history."""
+    from tracker.build.nets import distributed as dd
+    rank, n_proc = dd.world()  # several processes under torchrun: each takes its share of every batch
     torch.manual_seed(seed)
     model.to(device)
+    net = model
+    if n_proc > 1:
+        from torch.nn.parallel import DistributedDataParallel
+        net = DistributedDataParallel(model, device_ids=[torch.cuda.current_device()] if device == "cuda" else None)
+        log = log if rank == 0 else (lambda *a, **k: None)
     g = torch.Generator().manual_seed(seed)
     opt = torch.optim.AdamW(model.parameters(), lr=lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=1e-2)
     sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, factor=0.2, patience=3, min_lr=1e-6)
@@ -122,18 +129,23 @@ def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, ou
     prec.channels_last(model)
     n = len(x_tr)
     t_start = time.perf_counter() - spent
+    if n_proc > 1:  # one order of the crops for all processes; augmentation draws of each its own
+        g = torch.Generator().manual_seed(seed * 1000 + rank)
     for epoch in range(start_epoch, max_epochs):
         model.train()
-        perm = torch.randperm(n, generator=g).numpy()
+        perm = (torch.randperm(n, generator=g) if n_proc == 1
+                else torch.randperm(n, generator=torch.Generator().manual_seed(seed * 100003 + epoch))).numpy()
         tot, cnt = 0.0, 0
-        bar = tqdm(range(0, n, batch), desc=f"epoch {epoch}", unit="batch", leave=False)
+        # every process takes the same number of steps (a partial last batch too small to share is left out)
+        starts = [i for i in range(0, n, batch) if min(batch, n - i) >= n_proc]
+        bar = tqdm(starts, desc=f"epoch {epoch}", unit="batch", leave=False, disable=rank != 0)
         for i in bar:
-            idx = np.sort(perm[i:i + batch])
+            idx = np.sort(perm[i:i + batch][rank::n_proc])
             xb = prec.channels_last(augment(to_tensor(x_tr[idx]), g).to(device))
             yb = to_tensor(y_tr[idx]).to(device)
             cb = c_tr[idx].to(device) if cond else None
             with prec.autocast(precision, device):
-                recon, mu, logvar = model(xb, cb)
+                recon, mu, logvar = net(xb, cb)
             l2, kl = loss_terms(recon, yb, mu, logvar)
             loss = l2 + (KL_ALPHA * kl if variational else 0.0)
             opt.zero_grad(set_to_none=True)
@@ -142,26 +154,29 @@ def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, ou
             tot += float(l2.detach()) * len(idx)
             cnt += len(idx)
             bar.set_postfix(l2=f"{tot / cnt:.1f}")
-            if time.perf_counter() - t_start > minutes * 60:
+            if dd.any_rank(time.perf_counter() - t_start > minutes * 60):
                 break
         val = evaluate_l2(model, x_va, y_va, c_va if cond else None, batch=256)
         sched.step(val)
         spent = time.perf_counter() - t_start
         for k, v in zip(hist, (epoch, tot / max(cnt, 1), val, opt.param_groups[0]["lr"], spent)):
             hist[k].append(v)
-        improved = val < best
+        improved = val < best  # the same on every process: the same weights, the same crops
         if improved:
             best, since_best = val, 0
-            torch.save(model.state_dict(), best_path)
+            if rank == 0:
+                torch.save(model.state_dict(), best_path)
         else:
             since_best += 1
         log(f"epoch {epoch}: train L2 {tot / max(cnt, 1):.2f}, val L2 {val:.2f}{' *' if improved else ''}, "
             f"lr {opt.param_groups[0]['lr']:.1e}, {spent / 60:.1f} min")
-        torch.save({"model": model.state_dict(), "opt": opt.state_dict(), "sched": sched.state_dict(),
-                    "gen": g.get_state(), "epoch": epoch, "best": best, "since_best": since_best,
-                    "hist": hist, "spent": spent}, ckpt)
-        if since_best >= patience or spent > minutes * 60:
+        if rank == 0:
+            torch.save({"model": model.state_dict(), "opt": opt.state_dict(), "sched": sched.state_dict(),
+                        "gen": g.get_state(), "epoch": epoch, "best": best, "since_best": since_best,
+                        "hist": hist, "spent": spent}, ckpt)
+        if dd.any_rank(since_best >= patience or spent > minutes * 60):
             break
+    dd.barrier()  # the best weights are written
     model.load_state_dict(torch.load(best_path, weights_only=True, map_location=device))
     model.to(memory_format=torch.contiguous_format)
     return hist

@@ -1,0 +1,59 @@
+"""Data-parallel training under ``torchrun --nproc_per_node N`` (DistributedDataParallel): one
+process per GPU (NCCL), or several CPU processes (gloo). Without torchrun (WORLD_SIZE unset or
+1) every function here is a no-op and training runs in one process as before.
+
+torchrun's agent ends every process of the job when one of them dies, and each training step
+exchanges gradients, so a crashed process cannot leave the others waiting for long."""
+from __future__ import annotations
+
+import os
+from datetime import timedelta
+
+
+def init_from_env(device: str) -> tuple[int, int]:
+    """Join the process group torchrun describes (WORLD_SIZE > 1); returns (rank, world size)."""
+    n = int(os.environ.get("WORLD_SIZE", "1"))
+    if n <= 1:
+        return 0, 1
+    import torch
+    import torch.distributed as dist
+    if not dist.is_initialized():
+        if device == "cuda":
+            torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", "0")))
+        dist.init_process_group("nccl" if device == "cuda" else "gloo", timeout=timedelta(minutes=30))
+    return dist.get_rank(), dist.get_world_size()
+
+
+def world() -> tuple[int, int]:
+    """(rank, world size) of this process; (0, 1) outside a process group."""
+    import torch.distributed as dist
+    if dist.is_available() and dist.is_initialized():
+        return dist.get_rank(), dist.get_world_size()
+    return 0, 1
+
+
+def any_rank(flag: bool) -> bool:
+    """True on every process when ``flag`` is true on any (all stop together, or none does)."""
+    rank, n = world()
+    if n == 1:
+        return bool(flag)
+    import torch
+    import torch.distributed as dist
+    t = torch.tensor([1 if flag else 0], dtype=torch.int32)
+    if dist.get_backend() == "nccl":
+        t = t.cuda()
+    dist.all_reduce(t, op=dist.ReduceOp.MAX)
+    return bool(t.item())
+
+
+def barrier() -> None:
+    if world()[1] > 1:
+        import torch.distributed as dist
+        dist.barrier()
+
+
+def finish() -> None:
+    """Leave the process group (at the end of a distributed run)."""
+    import torch.distributed as dist
+    if dist.is_available() and dist.is_initialized():
+        dist.destroy_process_group()
