@@ -244,7 +244,7 @@ def build(recipe: Recipe, out_dir, log=print) -> dict:
 
     # 7. report, and the recipe into the manifest
     def do_report():
-        _record_recipe(out, root, recipe, plan(recipe, rate), state.d)
+        _record_recipe(out, root, recipe, {**p, "render_det_images": p_det["render_det_images"]}, state.d)
         return {"report": str(out / "report" / "report.md")}
     stage(7, "report", _key("report", k_check, asdict(recipe)), do_report)
     summary["minutes"] = round((time.perf_counter() - t_start) / 60, 1)
