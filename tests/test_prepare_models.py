@@ -43,10 +43,11 @@ def test_bop_ids_are_kept_and_other_files_numbered_around_them(tmp_path):
     src.mkdir()
     shutil.copy(FIX / "obj_000001.ply", src / "obj_000001.ply")
     trimesh.load(FIX / "obj_000002.ply", process=False).export(src / "mug.stl")  # STL: no colours
+    shutil.copy(FIX / "obj_000001.ply", src / "obj_000007_duck.ply")
     with pytest.warns(UserWarning, match="mug.stl: no vertex colours or texture"):
         rep = prepare_models(src, tmp_path / "out", symmetries=False, log=lambda *a: None)
-    assert {k: v["name"] for k, v in rep.items()} == {1: "obj_1", 2: "mug"}
-    assert sorted(load_models(tmp_path / "out")) == [1, 2]
+    assert {k: v["name"] for k, v in rep.items()} == {1: "obj_1", 2: "mug", 7: "duck"}
+    assert sorted(load_models(tmp_path / "out")) == [1, 2, 7]
 
 
 def test_a_folder_without_meshes_is_one_clear_error(tmp_path):

@@ -45,7 +45,8 @@ def write_build_report(folder, work_root, stages: dict, recipe, planned: dict, n
     for name, s in stages.items():
         if name == "report":
             continue
-        shown = {k: v for k, v in s.items() if k not in ("key", "done", "seconds") and not isinstance(v, dict)}
+        shown = {k: (round(v, 3) if isinstance(v, float) else v) for k, v in s.items()
+                 if k not in ("key", "done", "seconds") and not isinstance(v, dict)}
         lines.append(f"| {name} | {(s.get('seconds') or 0) / 60:.1f} | {planned_min.get(name, '')} | "
                      + ", ".join(f"{k} {v}" for k, v in shown.items()) + " |")
     lines += ["", "Recipe (also in manifest.json, `build`): `" + str(asdict(recipe)) + "`", ""]

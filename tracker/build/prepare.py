@@ -20,7 +20,7 @@ from tracker.core.errors import UserError
 MESH_SUFFIXES = (".ply", ".obj", ".stl", ".glb", ".gltf", ".off")
 METRES_BELOW = 5.0  # a diameter under 5 units: metres (a 5 m object), not a 5 mm one
 UNITS = {"auto": None, "mm": 1.0, "cm": 10.0, "m": 1000.0}
-BOP_NAME = re.compile(r"^obj_(\d{6})$")
+BOP_NAME = re.compile(r"^obj_(\d{6})(?:[_-](.+))?$")  # obj_000009 or obj_000009_duck: id 9 (named duck)
 
 
 def mesh_files(src) -> list[Path]:
@@ -50,7 +50,7 @@ def _load_any(path: Path):
 
 def prepare_models(src, out, units: str = "auto", symmetries: bool = True, log=print) -> dict[int, dict]:
     """Write ``out``/obj_NNNNNN.ply, models_info.json and names.json from the meshes in ``src``.
-    Files named ``obj_NNNNNN.*`` keep their id; the others are numbered 1, 2, ... in name
+    Files named ``obj_NNNNNN.*`` or ``obj_NNNNNN_NAME.*`` keep their id; the others are numbered 1, 2, ... in name
     order (after the kept ids). Returns {obj_id: {"name", "source", "diameter_mm", "scale"}}."""
     from tracker.core.bop import save_models_info
     from tracker.core.meshes import compute_models_info, diameter, load_mesh
@@ -100,7 +100,8 @@ def prepare_models(src, out, units: str = "auto", symmetries: bool = True, log=p
         dst = out / f"obj_{oid:06d}.ply"
         mesh.export(dst, encoding="binary")
         load_mesh(dst, oid)  # what the other jobs will read
-        name = BOP_NAME.sub(lambda m: f"obj_{int(m.group(1))}", p.stem)
+        m = BOP_NAME.match(p.stem)
+        name = (m.group(2) or f"obj_{int(m.group(1))}") if m else p.stem
         report[oid] = {"name": name, "source": str(p), "diameter_mm": round(d * scale, 3), "scale": scale}
         log(f"{p.name} -> {dst.name}: '{name}', diameter {d * scale:.1f} mm" + (f" (x {scale:g})" if scale != 1 else ""))
     from tracker.core.meshes import load_models
