@@ -34,15 +34,8 @@ def mesh_files(src) -> list[Path]:
 
 
 def _load_any(path: Path):
-    import trimesh
-    try:
-        mesh = trimesh.load(path, force="mesh", process=False)
-    except Exception as e:  # trimesh raises many types for garbled files
-        raise UserError(f"{path}: unreadable mesh ({e.__class__.__name__}: {str(e)[:80]})") from None
-    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.vertices) < 4 or len(mesh.faces) < 1:
-        raise UserError(f"{path}: no triangles in this file")
-    if not np.all(np.isfinite(mesh.vertices)):
-        raise UserError(f"{path}: non-finite vertices")
+    from tracker.core.meshes import read_mesh
+    mesh = read_mesh(path)
     if getattr(mesh.visual, "kind", None) == "texture":
         mesh.visual = mesh.visual.to_color()  # the texture sampled at the vertices
     return mesh

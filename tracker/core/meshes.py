@@ -35,8 +35,8 @@ class ObjectModel:
         return np.asarray(self.mesh.vertices, dtype=np.float64)
 
 
-def load_mesh(path, obj_id: int | None = None) -> ObjectModel:
-    """Load a PLY/OBJ mesh in millimetres; meshes without colours get a grey default."""
+def read_mesh(path) -> trimesh.Trimesh:
+    """Any mesh file trimesh reads (a scene's meshes joined), checked: triangles, finite vertices."""
     path = Path(path)
     if not path.is_file():
         raise UserError(f"mesh not found: {path}")
@@ -48,6 +48,13 @@ def load_mesh(path, obj_id: int | None = None) -> ObjectModel:
         raise UserError(f"{path}: mesh has no triangles")
     if not np.all(np.isfinite(mesh.vertices)):
         raise UserError(f"{path}: mesh has non-finite vertices")
+    return mesh
+
+
+def load_mesh(path, obj_id: int | None = None) -> ObjectModel:
+    """Load a PLY/OBJ mesh in millimetres; meshes without colours get a grey default."""
+    path = Path(path)
+    mesh = read_mesh(path)
     has_colours = getattr(mesh.visual, "kind", None) == "vertex"
     if not has_colours:
         warnings.warn(f"{path.name}: no vertex colours, rendering it grey", stacklevel=2)
