@@ -16,20 +16,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from tracker.core.geometry import box_from_points, project
+from tracker.core.geometry import box_from_points, iou_matrix, project
 
 UNCERTAIN_BELOW = 0.3  # on dev, poses above: 53 % good, below: 11 % (good: AR_MSSD >= 0.5)
 
 
 def box_iou(a, b) -> float:
     """IoU of two (x, y, w, h) boxes."""
-    ax, ay, aw, ah = (float(v) for v in a)
-    bx, by, bw, bh = (float(v) for v in b)
-    iw = max(0.0, min(ax + aw, bx + bw) - max(ax, bx))
-    ih = max(0.0, min(ay + ah, by + bh) - max(ay, by))
-    inter = iw * ih
-    union = aw * ah + bw * bh - inter
-    return inter / union if union > 0 else 0.0
+    return float(iou_matrix(a, b)[0, 0])
 
 
 def box_agreement(points: np.ndarray, K, R, t, box) -> float:
