@@ -74,3 +74,31 @@ def test_unreadable_meshes(tmp_path, content):
     p.write_bytes(content)
     with pytest.raises(UserError):
         load_mesh(p)
+
+
+def test_the_parsed_mesh_cache_gives_the_parsed_mesh_and_survives_a_broken_cache(tmp_path, monkeypatch, data_dir):
+    """A PLY read twice: the second read comes from the cache (keyed by the file's contents)
+    and equals the parse; a corrupt cache file is parsed again, and an edited file is not
+    served from the old entry."""
+    import shutil
+    cache = tmp_path / "cache"
+    monkeypatch.setenv("AUTOPOSE_CACHE", str(cache))
+    src = tmp_path / "obj_000001.ply"
+    shutil.copy(data_dir / "lmo" / "models" / "obj_000001.ply", src)
+    first = load_mesh(src)
+    (entry,) = cache.glob("mesh_*.npz")
+    second = load_mesh(src)
+    assert second.has_colours and second.obj_id == 1
+    for a, b in ((first.mesh.vertices, second.mesh.vertices), (first.mesh.faces, second.mesh.faces),
+                 (first.mesh.visual.vertex_colors, second.mesh.visual.vertex_colors)):
+        assert np.array_equal(a, b)
+    entry.write_bytes(b"not an npz")
+    third = load_mesh(src)
+    assert np.array_equal(third.mesh.vertices, first.mesh.vertices)
+    grey = trimesh.Trimesh(np.asarray(first.mesh.vertices) * 2.0, first.mesh.faces, process=False)
+    grey.export(src)
+    with warnings.catch_warnings(record=True):
+        warnings.simplefilter("always")
+        edited = load_mesh(src)
+    assert np.allclose(edited.mesh.vertices, 2.0 * np.asarray(first.mesh.vertices), atol=1e-3)
+    assert not edited.has_colours and len(list(cache.glob("mesh_*.npz"))) == 2

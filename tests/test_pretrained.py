@@ -109,7 +109,19 @@ def test_a_detector_trains_on_the_pretrained_trunk_and_exports(tiny_bundle, tmp_
     det = Detector(open_bundle(root))
     out = det(np.full((480, 640, 3), 120, np.uint8))
     assert isinstance(out, list) and all(o.obj_id in open_bundle(root).manifest.obj_ids for o in out)
-    m = CenterNetPretrained(8, 4, "lite0", pretrained=False).train()
-    assert all(not b.training for b in m.trunk.modules() if isinstance(b, torch.nn.BatchNorm2d))
+    m = CenterNetPretrained(8, 4, "lite0", pretrained=False).train()  # the control: BatchNorm learns
+    assert all(b.training for b in m.trunk.modules() if isinstance(b, torch.nn.BatchNorm2d))
     with pytest.raises(UserError, match="--backbone"):
         train_detector(tiny_bundle.parent / "split", root, minutes=0.01, backbone="resnet", log=lambda *a: None)
+
+
+def test_the_random_weights_control_trains_its_batchnorm():
+    """From random weights (the control) BatchNorm's initial statistics mean nothing: they learn."""
+    trunk = LiteTrunk("lite0", pretrained=False).train()
+    bns = [m for m in trunk.modules() if isinstance(m, torch.nn.BatchNorm2d)]
+    assert bns and all(m.training for m in bns)
+    before = bns[0].running_mean.clone()
+    trunk(torch.rand(2, 3, 64, 64))
+    assert not torch.equal(before, bns[0].running_mean)
+    assert all(p.requires_grad for m in bns for p in m.parameters())
+    assert not any(m.training for m in trunk.train(False).modules() if isinstance(m, torch.nn.BatchNorm2d))

@@ -457,7 +457,7 @@ def add_commands(sub, REPO) -> None:
                         "EfficientNet-Lite trunk (lite0/1/2, fine-tuned with its BatchNorm frozen; crops a multiple "
                         "of 32 px, e.g. --size 128)")
     s.add_argument("--no-pretrained", action="store_true",
-                   help="with --encoder lite*: the same network from random weights (the control)")
+                   help="with --encoder lite*: the same network from random weights, BatchNorm learning (the control)")
     s.add_argument("--lr", type=positive_float, default=1e-3, help="the autoencoder's AdamW learning rate")
     s.add_argument("--batch", type=positive_int, default=128, help="the autoencoder's batch size")
     s.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto",
@@ -513,7 +513,7 @@ def add_commands(sub, REPO) -> None:
                    help="plain: the small convolutional backbone from random weights; lite0-2: an ImageNet-pretrained "
                         "EfficientNet-Lite trunk (BatchNorm frozen) under the same neck and heads")
     s.add_argument("--no-pretrained", action="store_true",
-                   help="with --backbone lite*: the same network from random weights (the control)")
+                   help="with --backbone lite*: the same network from random weights, BatchNorm learning (the control)")
     s.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto",
                    help="where the detector trains: a CUDA GPU where torch sees one (auto), or the CPU")
     add_precision(s)

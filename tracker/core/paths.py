@@ -24,6 +24,15 @@ def work_dir(bundle_dir) -> Path:
     return b.parent / (b.name + ".work")
 
 
+def cache_dir() -> Path:
+    """Where derived files are cached between runs (models_info, parsed meshes):
+    ``$AUTOPOSE_CACHE``, else ``$XDG_CACHE_HOME/autopose``, else ``~/.cache/autopose``."""
+    env = os.environ.get("AUTOPOSE_CACHE")
+    if env:
+        return Path(env)
+    return Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "autopose"
+
+
 def lmo_dev_scene() -> Path:
     return _must_exist(shared_data() / "lmo" / "dev")
 

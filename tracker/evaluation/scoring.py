@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -42,6 +41,7 @@ from tracker.evaluation import metrics
 from tracker.core.bop import (Estimate, Scene, write_json, load_models_info, load_scene, read_results,
                   symmetry_transforms)
 from tracker.core.errors import UserError
+from tracker.core.paths import cache_dir
 
 VISIB_GT_MIN = 0.1
 MSSD_THS = np.arange(0.05, 0.51, 0.05)   # fractions of the diameter (BOP's exact values)
@@ -107,13 +107,6 @@ def _models_key(models_dir: Path) -> str:
     return h.hexdigest()[:20]
 
 
-def _cache_dir() -> Path:
-    env = os.environ.get("AUTOPOSE_CACHE")
-    if env:
-        return Path(env)
-    return Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "autopose"
-
-
 def models_info_for(models_dir, models_info=None) -> dict[int, dict]:
     """models_info: the given dict or file; else ``models_dir/models_info.json``; else
     computed from the meshes (diameter, box, discrete symmetries; about 10 s for LM-O) and
@@ -131,7 +124,7 @@ def models_info_for(models_dir, models_info=None) -> dict[int, dict]:
     key = _models_key(models_dir)
     if key in _INFO_CACHE:
         return _INFO_CACHE[key]
-    cached = _cache_dir() / f"models_info_{key}.json"
+    cached = cache_dir() / f"models_info_{key}.json"
     if cached.is_file():
         try:
             info = {int(k): v for k, v in json.loads(cached.read_text()).items()}

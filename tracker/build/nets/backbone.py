@@ -59,25 +59,30 @@ def imagenet_input(x: torch.Tensor) -> torch.Tensor:
 
 class LiteTrunk(nn.Module):
     """The feature extractor of an EfficientNet-Lite: (B, 3, H, W) RGB in [0, 1] ->
-    (B, 1280, H/32, W/32). ``train()`` keeps every BatchNorm in eval mode and its parameters
-    frozen."""
+    (B, 1280, H/32, W/32). With ImageNet weights, ``train()`` keeps every BatchNorm in eval
+    mode and its parameters frozen (the pretrained statistics); from random weights
+    (``pretrained=False``, the control) BatchNorm trains as usual, since its initial
+    statistics mean nothing."""
 
     def __init__(self, name: str = "lite0", pretrained: bool = True):
         super().__init__()
         net = load_efficientnet(name, pretrained)
         net._fc = nn.Identity()  # the classifier is not part of the trunk
         self.net = net
-        for m in self.net.modules():
-            if isinstance(m, nn.BatchNorm2d):
-                for p in m.parameters():
-                    p.requires_grad_(False)
+        self.freeze_bn = pretrained
+        if self.freeze_bn:
+            for m in self.net.modules():
+                if isinstance(m, nn.BatchNorm2d):
+                    for p in m.parameters():
+                        p.requires_grad_(False)
         self.train(False)
 
     def train(self, mode: bool = True):
         super().train(mode)
-        for m in self.net.modules():
-            if isinstance(m, nn.BatchNorm2d):
-                m.eval()
+        if self.freeze_bn:
+            for m in self.net.modules():
+                if isinstance(m, nn.BatchNorm2d):
+                    m.eval()
         return self
 
     def forward(self, x):
