@@ -534,3 +534,29 @@ def test_training_runs_under_torchrun_with_two_processes(tiny_bundle, tmp_path):
     m = open_bundle(out).manifest
     assert m.training["processes"] == 2 and m.training["ae_epochs"] >= 1
     assert r.stdout.count("wrote ") == 1  # one report, from the first process
+
+
+def test_the_detector_trains_under_torchrun_with_two_processes(tiny_bundle, tmp_path):
+    """DistributedDataParallel with gloo: two processes train the detector on shared batches;
+    the first validates, exports and writes it into the bundle, which records both, and the
+    exported detector runs."""
+    import os
+    import shutil
+    import subprocess
+    import sys
+    torchrun = Path(sys.executable).parent / "torchrun"
+    root = tmp_path / "lmo"
+    shutil.copytree(tiny_bundle, root)
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    r = subprocess.run([str(torchrun), "--nproc_per_node", "2", "--master_port", "29518", str(REPO / "app.py"),
+                        "train-detector", "--data", str(tiny_bundle.parent / "split"), "--model", str(root),
+                        "--minutes", "0.05", "--batch", "2", "--width", "8", "--input", "128", "96", "--device", "cpu"],
+                       capture_output=True, text=True, timeout=600, env=env, cwd=REPO)
+    assert r.returncode == 0, r.stderr[-2000:]
+    from tracker.core.bundle import open_bundle
+    from tracker.runtime.detector import Detector
+    b = open_bundle(root)
+    t = b.manifest.detector["training"]
+    assert t["processes"] == 2 and t["steps"] >= 1 and t["onnx_max_abs_diff"] <= 1e-4
+    assert r.stdout.count("detector added to") == 1  # one report, from the first process
+    assert isinstance(Detector(b)(np.full((480, 640, 3), 120, np.uint8)), list)

@@ -450,7 +450,11 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     (``amodal``, clipped to the image: a box's size and centre then follow the object's
     distance and position behind whatever hides part of it). ``ema`` > 0: validate and export
     the exponential moving average of the weights with this decay (``ema_update``), not the
-    last weights."""
+    last weights.
+
+    Under ``torchrun --nproc_per_node N`` (DistributedDataParallel: gloo on CPUs, NCCL on GPUs)
+    the N processes share every batch; the first one validates, exports and writes the bundle
+    and returns the manifest's detector entry, the others return None."""
     if box_kind not in BOX_KINDS:
         raise UserError(f"--boxes must be one of {', '.join(BOX_KINDS)}, not '{box_kind}'")
     if colour not in COLOUR_AUGS:
@@ -474,12 +478,16 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     from tracker.core.bundle import open_bundle, update_manifest
     from tracker.evaluation.detection_metrics import detection_ap
     from tracker.build.nets import precision as prec
-    from tracker.build.nets.detector import focal_loss, freeze_batchnorm, make_detector
+    from tracker.build.nets.detector import Logits, focal_loss, freeze_batchnorm, make_detector
+    from tracker.build.nets import distributed as dd
     from tracker.evaluation.report import fmt_num
     bundle = open_bundle(bundle_dir)  # verified before anything is changed
-    torch.set_num_threads(threads)
-    torch.manual_seed(seed)
     device = prec.resolve_device(device)
+    rank, n_proc = dd.init_from_env(device)  # under torchrun: several processes share each batch
+    torch.set_num_threads(threads if n_proc == 1 else max(1, threads // n_proc))
+    if rank != 0:
+        log = lambda *a, **k: None  # noqa: E731  (the first process reports)
+    torch.manual_seed(seed)
     precision = prec.resolve(precision, device)
     spec = DetectorSpec(classes=bundle.manifest.obj_ids, input_w=input_w, input_h=input_h, boxes=box_kind)
     if backbone != "plain":
@@ -492,7 +500,12 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     key = hashlib.sha1(json.dumps([str(Path(data_dir).resolve()), spec.classes, input_w, input_h, max_images,
                                    width] + ([box_kind] if box_kind != "visible" else [])
                                   + ([backbone, pretrained] if backbone != "plain" else [])).encode()).hexdigest()[:10]
-    images, boxes = load_detection_set(data_dir, spec, work / f"det_images_{key}.npz", max_images, log)
+    cache = work / f"det_images_{key}.npz"
+    if rank == 0:
+        images, boxes = load_detection_set(data_dir, spec, cache, max_images, log)
+    dd.barrier()  # the other processes read the set the first one cut and cached
+    if rank != 0:
+        images, boxes = load_detection_set(data_dir, spec, cache, max_images, log)
     n = len(images)
     tr, va = train_val_split(n, seed, parts=val_parts)
     if len(tr) < batch:
@@ -544,12 +557,15 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     log(f"detector ({backbone}{', ImageNet weights' if backbone != 'plain' and pretrained else ''}): "
         f"{n_params / 1e6:.2f} M parameters, {len(tr)} train / {len(va)} validation images, "
         f"{input_w}x{input_h} input, budget {minutes:.0f} min, {precision} training passes on {device}")
-    bar = tqdm(total=int(budget), initial=int(min(state["seconds"], budget)), unit="s", desc="detector")
+    bar = tqdm(total=int(budget), initial=int(min(state["seconds"], budget)), unit="s", desc="detector",
+               disable=rank != 0)
     last_ckpt = time.perf_counter()
     run_start = time.perf_counter() - state["seconds"]
     losses = []
 
     def save():
+        if rank != 0:  # one checkpoint, the first process's (the weights are the same in all)
+            return
         torch.save({"model": model.state_dict(), "opt": opt.state_dict(), "state": state, "width": width,
                     "classes": spec.classes, "recipe": recipe, **({"ema": averaged} if averaged else {})}, ckpt)
 
@@ -562,18 +578,25 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
         if averaged:
             averaged = {k: v.to(device) for k, v in averaged.items()}
         prec.channels_last(model)
-        while state["seconds"] < budget:
+        net = Logits(model)
+        if n_proc > 1:
+            from torch.nn.parallel import DistributedDataParallel
+            net = DistributedDataParallel(net, device_ids=[torch.cuda.current_device()] if device == "cuda" else None)
+        while not dd.any_rank(state["seconds"] >= budget):  # all processes stop at the same step
             frac = state["seconds"] / budget
             for gr in opt.param_groups:
                 gr["lr"] = lr * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * frac))) * min(1.0, (state["step"] + 1) / 200)
             b_rng = np.random.default_rng([seed, state["step"]])
             idx = b_rng.choice(tr, batch, replace=False)
+            if n_proc > 1:  # this process's share of the batch, augmented from its own stream
+                idx = idx[rank::n_proc]
+                b_rng = np.random.default_rng([seed, state["step"], rank])
             x = torch.from_numpy(images[idx]).permute(0, 3, 1, 2).float().div_(255)
             x, bl = augment_batch(x, [boxes[i] for i in idx], b_rng, torch, occlusion, paste_objects,
                                   cutout_images, recipe["cutout_share"], colour)
             hm_t, reg_t, mask_t = (torch.from_numpy(a).to(device) for a in draw_targets(bl, C, ow, oh, S))
             with prec.autocast(precision, device):
-                hm, reg = model.forward_logits(prec.channels_last(((x - spec.mean) / spec.std).to(device)))
+                hm, reg = net(prec.channels_last(((x - spec.mean) / spec.std).to(device)))
             hm, reg = hm.float(), reg.float()
             l_hm = focal_loss(hm, hm_t)
             npos = mask_t.sum().clamp(min=1)
@@ -602,6 +625,10 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
         raise UserError(f"interrupted; checkpoint saved in {ckpt}, rerun the same command to resume") from None
     bar.close()
     save()
+    if rank != 0:  # validation, export and the bundle are the first process's
+        dd.finish()
+        return None
+    dd.finish()
     model.to("cpu")  # validated and exported on the CPU
     if averaged:
         model.load_state_dict({**model.state_dict(), **{k: v.cpu() for k, v in averaged.items()}})
@@ -632,6 +659,7 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
                      "width": width, "steps": state["step"], **recipe,
                      **({"cutouts_dir": str(cutouts)} if cutouts else {}),
                      "minutes": round(state["seconds"] / 60, 1), "precision": precision, "device": device,
+                     "processes": n_proc,
                      "onnx_max_abs_diff": diff,
                      "validation_synthetic": ap, "command": command or "app.py " + " ".join(sys.argv[1:]),
                      "loss_history": state["history"][-20:],

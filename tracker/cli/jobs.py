@@ -260,6 +260,8 @@ def cmd_train_detector(args) -> int:
                        precision=args.precision, box_kind=args.boxes, colour=args.colour, ema=args.ema,
                        backbone=args.backbone, pretrained=not args.no_pretrained, device=args.device,
                        command="app.py " + " ".join(sys.argv[1:]))
+    if d is None:  # a helper process of a torchrun job: the first process writes the bundle
+        return 0
     v = d["training"]["validation_synthetic"]
     from tracker.evaluation.report import fmt_num
     print(f"detector added to {args.model}: synthetic validation AP {fmt_num(v['ap'])}, AP50 {fmt_num(v['ap50'])}")
@@ -474,7 +476,10 @@ def add_commands(sub, REPO) -> None:
     add_precision(s)
     s.set_defaults(func=cmd_train)
 
-    s = sub.add_parser("train-detector", help="train the 2D detector on synth scenes and add it to a bundle")
+    s = sub.add_parser("train-detector", help="train the 2D detector on synth scenes and add it to a bundle",
+                       description="Train the 2D detector on synth scenes and add it to a bundle. Under "
+                                   "'torchrun --nproc_per_node N app.py train-detector ...' N processes (GPUs, or "
+                                   "CPU processes with gloo) share every batch.")
     s.add_argument("--data", required=True, help="a 'synth' split")
     s.add_argument("--model", required=True, help="the bundle that gets detector.onnx")
     s.add_argument("--minutes", type=positive_float, default=60.0, help="training time budget (cosine schedule over it)")

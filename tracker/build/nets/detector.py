@@ -83,6 +83,18 @@ class CenterNetPretrained(nn.Module):
     forward = CenterNetLite.forward
 
 
+class Logits(nn.Module):
+    """A detector's training outputs (heatmap logits, box maps) as its ``forward``: the module
+    that DistributedDataParallel wraps (it synchronises gradients of ``forward`` calls only)."""
+
+    def __init__(self, net: nn.Module):
+        super().__init__()
+        self.net = net
+
+    def forward(self, x):
+        return self.net.forward_logits(x)
+
+
 IMAGENET_MEAN_STD = (127.0 / 255.0, 128.0 / 255.0)  # the pretrained trunks' (255 x - 127) / 128
 BACKBONES = ("plain", "lite0", "lite1", "lite2")
 
