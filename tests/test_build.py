@@ -18,7 +18,7 @@ FIX = Path(__file__).parent / "fixtures" / "models"
 def small(monkeypatch):
     monkeypatch.setattr(bb, "MIN_IMAGES", 8)
     monkeypatch.setattr(bb, "CHECK_IMAGES", 4)
-    monkeypatch.setattr(bb, "RENDER_RATE", 0.01)  # plan() gives MIN_IMAGES for a budget this small
+    monkeypatch.setattr(bb, "MAX_RATE", 0.01)  # plan() gives MIN_IMAGES for a budget this small
 
 
 def _meshes(tmp_path):
@@ -30,9 +30,10 @@ def _meshes(tmp_path):
 
 
 def test_the_budget_is_split_by_the_documented_rule():
-    p = bb.plan(bb.Recipe(models="m", minutes=100), render_rate=5.0)
+    p = bb.plan(bb.Recipe(models="m", minutes=100))
     assert p["encoder_minutes"] == 36 and p["detector_minutes"] == 30 and p["reg_minutes"] == pytest.approx(4 / 3, abs=1e-3)
-    assert p["render_images"] == p["render_det_images"] == int(0.10 * 100 * 60 * 5.0)
+    assert p["render_seconds"] == p["render_det_seconds"] == 0.10 * 100 * 60
+    assert p["render_images"] == p["render_det_images"] == int(0.10 * 100 * 60 * bb.MAX_RATE)
     assert sum(bb.SHARES.values()) == pytest.approx(1.0)
 
 

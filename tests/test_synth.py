@@ -406,3 +406,18 @@ def test_shards_joined_are_the_split_rendered_at_once(small_split, tmp_path, dat
         join_splits(tmp_path / "twice", [parts[1], parts[1]])
     with pytest.raises(UserError, match="same settings and seed"):
         join_splits(tmp_path / "overlap", [small_split, parts[2]])
+
+
+def test_a_time_limited_split_stops_with_a_consistent_split_of_what_was_done(data_dir, tmp_path):
+    """``seconds`` (build's budget): once the time is up and ``min_images`` are done, rendering
+    stops, and the split holds exactly the images whose records arrived."""
+    import json
+    out = tmp_path / "t"
+    rep = generate(_cfg(data_dir, seed=5), out, 20, workers=1, batch=1, progress=False, seconds=0.0, min_images=3)
+    assert rep.time_limited and not rep.interrupted and rep.images == 3
+    scene = load_scene(out / "000000", require_gt=True)
+    assert scene.im_ids == [0, 1, 2]
+    for sub in ("rgb", "mask_visib", "clean"):
+        assert {int(f.name[:6]) for f in (out / "000000" / sub).iterdir()} == {0, 1, 2}, sub
+    meta = json.loads((out / "synth_config.json").read_text())
+    assert meta["time_limited"] and meta["images_written"] == 3 and not meta.get("failed")

@@ -13,8 +13,9 @@ Stages, run in order; everything they make lives in ``MODEL_DIR.work/`` except t
 7. ``report``    ``MODEL_DIR.work/build/report.md`` + PNGs: sample renders next to their
    crops, accuracy per object on the held-out renders, timings
 
-The budget (:func:`plan`): ``--minutes`` is split as 20 % rendering (half per split, at a
-rendering rate measured on the first images), 40 % encoder (of which a tenth for the heads),
+The budget (:func:`plan`): ``--minutes`` is split as 20 % rendering (half per split: each
+renders for its share of the time, at least :data:`MIN_IMAGES` images, at most
+:data:`MAX_RATE` images per second of it), 40 % encoder (of which a tenth for the heads),
 30 % detector, 10 % held-out check and report. Each stage is cached by a hash of its options
 and of the stages it reads; a rerun of the same command skips finished stages, and
 ``train``/``train-detector`` resume from their checkpoints. Ctrl-C keeps what is done. The
@@ -34,7 +35,7 @@ from pathlib import Path
 from tracker.core.errors import UserError
 
 SHARES = {"render": 0.10, "render-det": 0.10, "encoder": 0.36, "heads": 0.04, "detector": 0.30, "check": 0.10}
-RENDER_RATE = 5.0  # images per second assumed before the first split measures it (2 workers here)
+MAX_RATE = 50.0  # images per second of a split's time share: the cap on its size (2 workers here: 5-15)
 MIN_IMAGES = 60
 CHECK_IMAGES = 40
 STAGES = ("models", "render", "render-det", "encoder", "detector", "check", "report")
@@ -68,11 +69,13 @@ class Recipe:
         return cls(**known)
 
 
-def plan(recipe: Recipe, render_rate: float = RENDER_RATE) -> dict:
-    """Minutes per stage and images per split for ``recipe.minutes`` (the rule above)."""
+def plan(recipe: Recipe) -> dict:
+    """Minutes per stage, seconds and most images per split for ``recipe.minutes`` (the rule above)."""
     m = float(recipe.minutes)
-    images = lambda share: max(MIN_IMAGES, int(share * m * 60 * render_rate))  # noqa: E731
-    return {"render_images": images(SHARES["render"]), "render_det_images": images(SHARES["render-det"]),
+    images = lambda share: max(MIN_IMAGES, int(share * m * 60 * MAX_RATE))  # noqa: E731
+    return {"render_seconds": round(SHARES["render"] * m * 60, 1), "render_images": images(SHARES["render"]),
+            "render_det_seconds": round(SHARES["render-det"] * m * 60, 1),
+            "render_det_images": images(SHARES["render-det"]),
             "encoder_minutes": round(SHARES["encoder"] * m, 3),
             "reg_minutes": round(SHARES["heads"] * m / 3, 3),  # three MLP regressors
             "detector_minutes": round(SHARES["detector"] * m, 3), "check_images": CHECK_IMAGES}
@@ -167,28 +170,28 @@ def build(recipe: Recipe, out_dir, log=print) -> dict:
     # 2-3. the synthetic splits
     from tracker.build.synth.engine import SynthConfig, generate
     backgrounds = str(shared_data() / "backgrounds")
-    rate = float(state.d.get("render", {}).get("images_per_s", RENDER_RATE))
     p = plan(recipe)
 
-    def render(split: Path, n: int, seed: int, **opts):
+    def render(split: Path, n: int, seed: int, seconds: float | None = None, **opts):
         def run():
             shutil.rmtree(split, ignore_errors=True)  # a split left half-made by an interruption
             cfg = SynthConfig(models_dir=str(models_dir), backgrounds_dir=backgrounds, seed=seed, prior=recipe.prior,
                               obj_ids=list(obj_ids), **opts)
-            rep = generate(cfg, split, n, workers=recipe.workers, command=f"build stage {split.name}")
+            rep = generate(cfg, split, n, workers=recipe.workers, command=f"build stage {split.name}",
+                           seconds=seconds, min_images=min(n, MIN_IMAGES))
             if rep.interrupted:
                 raise KeyboardInterrupt
             return {"images": rep.images, "images_per_s": round(rep.images_per_s, 2)}
         return run
 
     split_enc, split_det = root / "split_encoder", root / "split_detector"
-    k_render = _key("render", k_models, p["render_images"], recipe.seed, recipe.prior, obj_ids)
-    got = stage(2, "render", k_render, render(split_enc, p["render_images"], recipe.seed))
-    rate = got.get("images_per_s", rate)
-    p_det = plan(recipe, rate)  # the detector's split sized at the rate measured on the first
+    k_render = _key("render", k_models, p["render_images"], p["render_seconds"], recipe.seed, recipe.prior, obj_ids)
+    stage(2, "render", k_render, render(split_enc, p["render_images"], recipe.seed, p["render_seconds"]))
     det_opts = {"distractors": "hard", "lighting": "overhead"}
-    k_render_det = _key("render-det", k_models, p_det["render_det_images"], recipe.seed, recipe.prior, obj_ids, det_opts)
-    stage(3, "render-det", k_render_det, render(split_det, p_det["render_det_images"], recipe.seed + 1, **det_opts))
+    k_render_det = _key("render-det", k_models, p["render_det_images"], p["render_det_seconds"], recipe.seed,
+                        recipe.prior, obj_ids, det_opts)
+    stage(3, "render-det", k_render_det, render(split_det, p["render_det_images"], recipe.seed + 1,
+                                                p["render_det_seconds"], **det_opts))
 
     # 4. encoder and heads
     k_enc = _key("encoder", k_render, recipe.method, recipe.encoder, recipe.size, recipe.latent,
@@ -244,7 +247,7 @@ def build(recipe: Recipe, out_dir, log=print) -> dict:
 
     # 7. report, and the recipe into the manifest
     def do_report():
-        _record_recipe(out, root, recipe, {**p, "render_det_images": p_det["render_det_images"]}, state.d)
+        _record_recipe(out, root, recipe, p, state.d)
         return {"report": str(out / "report" / "report.md")}
     stage(7, "report", _key("report", k_check, asdict(recipe)), do_report)
     summary["minutes"] = round((time.perf_counter() - t_start) / 60, 1)

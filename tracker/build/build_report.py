@@ -40,7 +40,7 @@ def write_build_report(folder, work_root, stages: dict, recipe, planned: dict, n
                      f"{_f(v.get('ar_mspd'))} | {v.get('n_gt')} |")
     lines += ["", "## Sample renders and their crops", "", "![samples](samples.png)", "",
               "## Stages", "", "| stage | minutes | planned | result |", "|---|---|---|---|"]
-    planned_min = {"render": f"{planned['render_images']} images", "render-det": f"{planned['render_det_images']} images",
+    planned_min = {"render": f"{planned['render_seconds'] / 60:.1f} min", "render-det": f"{planned['render_det_seconds'] / 60:.1f} min",
                    "encoder": f"{planned['encoder_minutes']:g} min + heads", "detector": f"{planned['detector_minutes']:g} min"}
     for name, s in stages.items():
         if name == "report":

@@ -54,7 +54,8 @@ def read_mesh(path) -> trimesh.Trimesh:
 
 
 def _cached_read(path: Path) -> trimesh.Trimesh:
-    """:func:`read_mesh` for a BOP model (geometry and vertex colours only), through a cache
+    """:func:`read_mesh` for a BOP model (geometry and vertex colours; a textured mesh is never
+    cached), through a cache
     of the parsed arrays keyed by the file's contents (``cache_dir()/mesh_<sha>.npz``): an
     ASCII PLY of LM-O takes about 0.15 s to parse, its cached arrays a few milliseconds, and
     every render worker loads every model. A missing, unreadable or unwritable cache only
@@ -71,11 +72,14 @@ def _cached_read(path: Path) -> trimesh.Trimesh:
             if "colours" in z.files:
                 mesh.visual = trimesh.visual.ColorVisuals(mesh, vertex_colors=z["colours"])
             return mesh
-    except (OSError, ValueError, KeyError):
+    except Exception:  # no entry, or a damaged one (any error of a half-written zip): parse
         pass
     mesh = read_mesh(path)
+    kind = getattr(mesh.visual, "kind", None)
+    if kind not in ("vertex", None):  # a texture or face colours: not what the cache holds
+        return mesh
     arrays = {"vertices": np.asarray(mesh.vertices, np.float64), "faces": np.asarray(mesh.faces, np.int64)}
-    if getattr(mesh.visual, "kind", None) == "vertex":
+    if kind == "vertex":
         arrays["colours"] = np.asarray(mesh.visual.vertex_colors, np.uint8)
     try:
         cached.parent.mkdir(parents=True, exist_ok=True)

@@ -99,6 +99,7 @@ class SynthReport:
     peak_rss_mb_worker: float
     workers: int
     interrupted: bool = False
+    time_limited: bool = False  # stopped by ``seconds`` before ``n_images``
 
 
 # --------------------------------------------------------------------------- worker side
@@ -375,9 +376,15 @@ def shard_range(n_images: int, shard: tuple[int, int] | None) -> range:
 
 
 def generate(cfg: SynthConfig, out_dir, n_images: int, workers: int = 2, batch: int = 4,
-             progress: bool = True, command: str | None = None, shard: tuple[int, int] | None = None) -> SynthReport:
+             progress: bool = True, command: str | None = None, shard: tuple[int, int] | None = None,
+             seconds: float | None = None, min_images: int = 0) -> SynthReport:
     """Render images 0 .. ``n_images`` - 1 of the split ``cfg`` describes into ``out_dir``, or
-    only those of ``shard`` (:func:`shard_range`)."""
+    only those of ``shard`` (:func:`shard_range`).
+
+    ``seconds``: a time limit (``build``'s budget): once it has passed and at least
+    ``min_images`` are done, rendering stops; the split holds the images finished by then
+    (each still the same image its index always gives; the batches in flight are dropped),
+    and ``synth_config.json`` says ``time_limited``."""
     if n_images <= 0:
         raise UserError(f"--images must be positive, got {n_images}")
     mine = shard_range(n_images, shard)
@@ -411,7 +418,7 @@ def generate(cfg: SynthConfig, out_dir, n_images: int, workers: int = 2, batch: 
     tasks = [(list(mine[i:i + batch]), str(out)) for i in range(0, len(mine), batch)]
     writer = _ChunkWriter(out)
     done = n_inst = n_crops = 0
-    interrupted = False
+    interrupted = time_limited = False
     t0 = time.perf_counter()
     from tqdm import tqdm
     bar = tqdm(total=len(mine), unit="img", desc="synth" + (f" {shard[0]}/{shard[1]}" if shard else ""),
@@ -428,6 +435,9 @@ def generate(cfg: SynthConfig, out_dir, n_images: int, workers: int = 2, batch: 
                 n_crops += sum(i["visib_fract"] >= 0.1 for i in rec["info"])
             done += len(recs)
             bar.update(len(recs))
+            if seconds is not None and done >= min_images and done < len(mine) and time.perf_counter() - t0 > seconds:
+                time_limited = True
+                break
             if time.perf_counter() - last_flush > 10:
                 writer.flush()
                 last_flush = time.perf_counter()
@@ -442,13 +452,14 @@ def generate(cfg: SynthConfig, out_dir, n_images: int, workers: int = 2, batch: 
             for k in ("scene", "crop"):
                 if k in _W:
                     _W.pop(k).close()
-        if done < len(mine):  # interrupted, or a failure: a consistent split of what was done
+        if done < len(mine):  # interrupted, out of time, or a failure: a consistent split of what was done
             writer.prune(chunks[-1] + 1)
-            if not interrupted:
+            if not (interrupted or time_limited):
                 meta.update(images_written=done, failed=True)
                 write_json(out / "synth_config.json", meta)
     dt = time.perf_counter() - t0
-    meta.update(images_written=done, seconds=round(dt, 1), interrupted=interrupted)
+    meta.update(images_written=done, seconds=round(dt, 1), interrupted=interrupted,
+                **({"time_limited": True, "time_limit_s": seconds} if time_limited else {}))
     write_json(out / "synth_config.json", meta)
     return SynthReport(done, n_inst, n_crops, dt, done / dt, n_crops / dt, _peak_rss_mb(resource.RUSAGE_SELF),
-                       _peak_rss_mb(resource.RUSAGE_CHILDREN), workers, interrupted)
+                       _peak_rss_mb(resource.RUSAGE_CHILDREN), workers, interrupted, time_limited)
