@@ -501,11 +501,8 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
                                    width] + ([box_kind] if box_kind != "visible" else [])
                                   + ([backbone, pretrained] if backbone != "plain" else [])).encode()).hexdigest()[:10]
     cache = work / f"det_images_{key}.npz"
-    if rank == 0:
-        images, boxes = load_detection_set(data_dir, spec, cache, max_images, log)
-    dd.barrier()  # the other processes read the set the first one cut and cached
-    if rank != 0:
-        images, boxes = load_detection_set(data_dir, spec, cache, max_images, log)
+    # the first process cuts and caches the set, the others read it
+    images, boxes = dd.first_then_rest(lambda: load_detection_set(data_dir, spec, cache, max_images, log))
     n = len(images)
     tr, va = train_val_split(n, seed, parts=val_parts)
     if len(tr) < batch:

@@ -292,11 +292,7 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
                 f"({time.perf_counter() - t1:.0f} s)")
         return c
 
-    if rank == 0:
-        cs = crops(jitter=True)  # the autoencoder learns from detector-like boxes
-    dd.barrier()  # the other processes read the crops the first one cut and cached
-    if rank != 0:
-        cs = crops(jitter=True)
+    cs = dd.first_then_rest(lambda: crops(jitter=True))  # detector-like boxes; the first process cuts and caches
     obj_ids = sorted(int(o) for o in np.unique(cs.obj_id))
     lut = {o: i for i, o in enumerate(obj_ids)}
     idx = np.array([lut[int(o)] for o in cs.obj_id])

@@ -52,6 +52,15 @@ def barrier() -> None:
         dist.barrier()
 
 
+def first_then_rest(make):
+    """``make()`` on the first process, then on the others once it is done: the first writes a
+    cache (crops, a detection set) that the others then read instead of making it again."""
+    rank = world()[0]
+    out = make() if rank == 0 else None
+    barrier()
+    return make() if rank != 0 else out
+
+
 def finish() -> None:
     """Leave the process group (at the end of a distributed run)."""
     import torch.distributed as dist
