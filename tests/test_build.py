@@ -31,7 +31,7 @@ def _meshes(tmp_path):
 
 def test_the_budget_is_split_by_the_documented_rule():
     p = bb.plan(bb.Recipe(models="m", minutes=100))
-    assert p["encoder_minutes"] == 36 and p["detector_minutes"] == 30 and p["reg_minutes"] == pytest.approx(4 / 3, abs=1e-3)
+    assert p["encoder_minutes"] == 42 and p["detector_minutes"] == 32 and p["reg_minutes"] == pytest.approx(4 / 3, abs=1e-3)
     assert p["render_seconds"] == p["render_det_seconds"] == 0.10 * 100 * 60
     assert p["render_images"] == p["render_det_images"] == int(0.10 * 100 * 60 * bb.MAX_RATE)
     assert sum(bb.SHARES.values()) == pytest.approx(1.0)

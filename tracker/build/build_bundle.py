@@ -3,11 +3,13 @@
 Stages, run in order; everything they make lives in ``MODEL_DIR.work/`` except the bundle:
 
 1. ``models``    the meshes -> a BOP models folder in mm (:mod:`tracker.build.prepare`)
-2. ``render``    the encoder's synthetic split (``synth``, the chosen pose prior)
-3. ``render-det`` the detector's split (another seed; hard distractors, lit from above: what
-   the detectors of ``models/lmo`` were trained on)
-4. ``encoder``   the autoencoder and its pose heads (``train``)
-5. ``detector``  the detector (``train-detector``)
+2. ``render``    a synthetic split (``synth``, the chosen pose prior, lit from the camera's side)
+3. ``render-det`` another (another seed; hard distractors, lit from above: what the detectors
+   of ``models/lmo`` were trained on). With fewer objects than a scene holds, both repeat
+   objects (several instances per image), so a build of one or two objects gets as many crops
+   per rendered image as one of eight
+4. ``encoder``   the autoencoder and its pose heads (``train``) on both splits
+5. ``detector``  the detector (``train-detector``) on both splits
 6. ``check``     a fresh held-out render split, and ``eval`` on it with ground-truth and
    detector boxes
 7. ``report``    ``MODEL_DIR.work/build/report.md`` + PNGs: sample renders next to their
@@ -15,8 +17,8 @@ Stages, run in order; everything they make lives in ``MODEL_DIR.work/`` except t
 
 The budget (:func:`plan`): ``--minutes`` is split as 20 % rendering (half per split: each
 renders for its share of the time, at least :data:`MIN_IMAGES` images, at most
-:data:`MAX_RATE` images per second of it), 40 % encoder (of which a tenth for the heads),
-30 % detector, 10 % held-out check and report. Each stage is cached by a hash of its options
+:data:`MAX_RATE` images per second of it), 46 % encoder (of which 4 points for the heads),
+32 % detector, 2 % held-out check and report (40 renders and two evaluations: seconds). Each stage is cached by a hash of its options
 and of the stages it reads; a rerun of the same command skips finished stages, and
 ``train``/``train-detector`` resume from their checkpoints. Ctrl-C keeps what is done. The
 recipe (every option and seed, the package versions) goes into the manifest (``build``), so
@@ -34,7 +36,7 @@ from pathlib import Path
 
 from tracker.core.errors import UserError
 
-SHARES = {"render": 0.10, "render-det": 0.10, "encoder": 0.36, "heads": 0.04, "detector": 0.30, "check": 0.10}
+SHARES = {"render": 0.10, "render-det": 0.10, "encoder": 0.42, "heads": 0.04, "detector": 0.32, "check": 0.02}
 MAX_RATE = 50.0  # images per second of a split's time share: the cap on its size (2 workers here: 5-15)
 MIN_IMAGES = 60
 CHECK_IMAGES = 40
@@ -185,16 +187,27 @@ def build(recipe: Recipe, out_dir, log=print) -> dict:
         return run
 
     split_enc, split_det = root / "split_encoder", root / "split_detector"
-    k_render = _key("render", k_models, p["render_images"], p["render_seconds"], recipe.seed, recipe.prior, obj_ids)
-    stage(2, "render", k_render, render(split_enc, p["render_images"], recipe.seed, p["render_seconds"]))
-    det_opts = {"distractors": "hard", "lighting": "overhead"}
+    k_render = _key("render", k_models, p["render_images"], p["render_seconds"], recipe.seed, recipe.prior, obj_ids,
+                    "repeat")
+    stage(2, "render", k_render, render(split_enc, p["render_images"], recipe.seed, p["render_seconds"],
+                                        repeat_objects=True))
+    det_opts = {"distractors": "hard", "lighting": "overhead", "repeat_objects": True}
     k_render_det = _key("render-det", k_models, p["render_det_images"], p["render_det_seconds"], recipe.seed,
                         recipe.prior, obj_ids, det_opts)
     stage(3, "render-det", k_render_det, render(split_det, p["render_det_images"], recipe.seed + 1,
                                                 p["render_det_seconds"], **det_opts))
 
+    # both splits train both networks: linked into one (no copies) once both are made
+    split_all = root / "split_all"
+
+    def joined() -> Path:
+        from tracker.build.synth.join import join_splits
+        shutil.rmtree(split_all, ignore_errors=True)
+        join_splits(split_all, [split_enc, split_det], command="build")
+        return split_all
+
     # 4. encoder and heads
-    k_enc = _key("encoder", k_render, recipe.method, recipe.encoder, recipe.size, recipe.latent,
+    k_enc = _key("encoder", k_render, k_render_det, recipe.method, recipe.encoder, recipe.size, recipe.latent,
                  p["encoder_minutes"], p["reg_minutes"], recipe.seed)
 
     def do_encoder():
@@ -203,7 +216,7 @@ def build(recipe: Recipe, out_dir, log=print) -> dict:
         if prev and prev != k_enc:  # another recipe: its checkpoints must not be resumed
             for f in ("ae_checkpoint.pt", "ae_best.pt"):
                 (work_dir(out) / f).unlink(missing_ok=True)
-        m = train_bundle(split_enc, out, method=recipe.method, size=recipe.size, latent=recipe.latent,
+        m = train_bundle(joined(), out, method=recipe.method, size=recipe.size, latent=recipe.latent,
                          minutes=p["encoder_minutes"], seed=recipe.seed, reg_minutes=p["reg_minutes"],
                          models_info_path=models_dir / "models_info.json", log=log, encoder=recipe.encoder,
                          device=recipe.device, command=f"app.py build --models {recipe.models} --out {out}")
@@ -216,8 +229,8 @@ def build(recipe: Recipe, out_dir, log=print) -> dict:
 
     def do_detector():
         from tracker.build.detector_train import train_detector
-        n = int(state.d["render-det"]["images"])  # a tiny budget's split may hold less than a batch
-        d = train_detector(split_det, out, minutes=p["detector_minutes"], seed=recipe.seed, occlusion=0.5,
+        n = int(state.d["render"]["images"]) + int(state.d["render-det"]["images"])  # a tiny budget: < a batch
+        d = train_detector(joined(), out, minutes=p["detector_minutes"], seed=recipe.seed, occlusion=0.5,
                            batch=min(32, max(2, n // 2)),
                            backbone=recipe.detector_backbone, device=recipe.device, log=log,
                            command=f"app.py build --models {recipe.models} --out {out}")

@@ -206,7 +206,7 @@ def cmd_synth(args) -> int:
     cfg = SynthConfig(models_dir=str(args.models), backgrounds_dir=str(args.backgrounds or shared_data() / "backgrounds"),
                       seed=args.seed, prior=args.prior, obj_ids=obj_ids, mesh_faces=args.mesh_faces, depth=args.depth,
                       p_table=args.p_table, p_gloss=args.gloss, distractors=args.distractors,
-                      lighting=args.lighting)
+                      lighting=args.lighting, repeat_objects=args.repeat_objects)
     rep = generate(cfg, args.out, args.images, workers=args.workers, command="app.py " + " ".join(sys.argv[1:]),
                    shard=args.shard)
     state = "INTERRUPTED after" if rep.interrupted else "wrote"
@@ -438,6 +438,9 @@ def add_commands(sub, REPO) -> None:
                    help="camera: 1-3 lights from the camera's side (as data made before); overhead: a strong "
                         "key light from above the table, a weak fill, little ambient (bright tops, dark sides)")
     s.add_argument("--obj-ids", type=id_list, help="comma-separated subset of the models' ids")
+    s.add_argument("--repeat-objects", action="store_true",
+                   help="with fewer objects than an image holds (3-8): several instances of each object per "
+                        "image, so one or two objects give as many crops per image as eight")
     s.add_argument("--workers", type=positive_int, default=2, help="render processes")
     s.add_argument("--shard", type=shard_spec, metavar="K/N",
                    help="render only the K-th of N disjoint parts of the split (K = 0 .. N-1), e.g. one per "

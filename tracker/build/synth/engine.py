@@ -60,6 +60,10 @@ class SynthConfig:
     height: int = 480
     K: list = field(default_factory=lambda: LMO_K.tolist())
     objects_per_image: tuple = (3, 8)
+    # with fewer objects than an image draws: every object once, then repeats of them up to
+    # the drawn count (several instances of one object in an image, as BOP allows), so a split
+    # of one or two objects yields as many crops per image as one of eight
+    repeat_objects: bool = False
     distractors_per_image: tuple = (0, 5)
     p_occluder: float = 0.35
     # 'table' prior: how often the table's surface is drawn (a photo laid on the plane the
@@ -153,8 +157,13 @@ def _sample_instances(rng, cfg: SynthConfig):
     the number standing on the table (the first ones) and the table's pose (None: no table)."""
     obj_ids, K = _W["obj_ids"], _W["K"]
     lo, hi = cfg.objects_per_image
-    n_t = int(min(len(obj_ids), rng.integers(lo, hi + 1)))
-    targets = [int(x) for x in rng.choice(obj_ids, n_t, replace=False)]
+    n_t = int(rng.integers(lo, hi + 1))
+    if cfg.repeat_objects and len(obj_ids) < n_t:
+        targets = [int(x) for x in rng.permutation(obj_ids)]
+        targets += [int(x) for x in rng.choice(obj_ids, n_t - len(targets))]
+    else:
+        n_t = min(len(obj_ids), n_t)
+        targets = [int(x) for x in rng.choice(obj_ids, n_t, replace=False)]
     lo_d, hi_d = HARD_DISTRACTORS_PER_IMAGE if cfg.distractors in PHOTO_DISTRACTORS else cfg.distractors_per_image
     n_d = int(rng.integers(lo_d, hi_d + 1))
     dis = [DISTRACTOR_BASE + int(x) for x in rng.integers(0, _W["n_dis"], n_d)]
