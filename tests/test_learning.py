@@ -105,6 +105,32 @@ def test_unknown_object_is_a_clear_error(bundles, tiny_split):
     assert est.estimate(img, np.eye(3), []) == []
 
 
+def test_eval_scores_a_bundle_of_some_of_the_scenes_objects(bundles, data_dir, tmp_path, capsys):
+    """A bundle of two of LM-O's eight objects (``build --objects``) is scored on LM-O frames:
+    on their instances alone, the other six still hiding parts of them (meshes from BOP's
+    models/ above the scene), or, with no meshes of the others to be found, left out (said)."""
+    from tracker.evaluation.evaluate import evaluate
+    from tracker.evaluation.scoring import score_results
+    dev = data_dir / "lmo" / "dev"
+    m = evaluate(bundles["cvam"][1], dev, tmp_path / "m.json", max_frames=3, progress=False)
+    assert m["scored_obj_ids"] == OBJS and set(m["per_object"]) == {str(o) for o in OBJS}
+    assert m["visibility_meshes"] == str((data_dir / "lmo" / "models").resolve())
+    assert "scoring objects [1, 9] only" in capsys.readouterr().err
+    ids = sorted(load_scene(dev).gt)[:3]  # the same instances as a bundle of all eight is scored on
+    every = score_results(m["bop_csv"], dev, data_dir / "lmo" / "models", models_info=REPO / "models" / "lmo_models_info.json",
+                          im_ids=ids)
+    assert m["n_gt"] == sum(every["per_object"][str(o)]["n_gt"] for o in OBJS) > 0
+    for o in OBJS:
+        assert m["per_object"][str(o)]["ar_mspd"] == pytest.approx(every["per_object"][str(o)]["ar_mspd"])
+    alone = tmp_path / "scene"  # no models/ beside or above it
+    shutil.copytree(dev, alone)
+    m2 = evaluate(bundles["cvam"][1], alone, tmp_path / "m2.json", max_frames=3, progress=False)
+    assert "left out of the visibility" in capsys.readouterr().err
+    assert m2["n_gt"] >= m["n_gt"] and m2["visibility_meshes"].endswith("meshes")
+    with pytest.raises(UserError, match="--gt-models"):
+        evaluate(bundles["cvam"][1], dev, tmp_path / "m3.json", max_frames=3, progress=False, gt_models=tmp_path)
+
+
 def test_pose_does_not_depend_on_camera_or_resolution(bundles, tiny_split):
     """The same crop content seen by a camera of another resolution, or with the principal
     point elsewhere, gives the same pose: box features are normalised by the intrinsics.

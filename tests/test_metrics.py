@@ -268,6 +268,35 @@ def test_score_results_end_to_end(tmp_path, lmo_dev, data_dir):
         score_results(csv, scene_dir, models, models_info=LMO_INFO, im_ids=[999999])
 
 
+def test_scoring_the_instances_of_some_of_the_scenes_objects(tmp_path, lmo_dev, data_dir):
+    """A bundle of two of the scene's eight objects is scored on their instances alone; the
+    others still hide parts of them where their meshes are known, and are left out where not."""
+    im_ids = lmo_dev.im_ids[:3]
+    ests = [e for e in gt_estimates(lmo_dev, im_ids) if e.obj_id in (8, 11)]
+    for e in ests:
+        U, _, Vt = np.linalg.svd(e.R)
+        e.R = U @ Vt
+    csv = write_results(tmp_path / "two.csv", ests)
+    scene_dir, models = data_dir / "lmo" / "dev", data_dir / "lmo" / "models"
+    every = score_results(csv, scene_dir, models, models_info=LMO_INFO, im_ids=im_ids)
+    assert every["add_recall"] < 1.0  # the six objects without estimates count as misses
+    two = score_results(csv, scene_dir, models, models_info=LMO_INFO, im_ids=im_ids, obj_ids=[8, 11])
+    assert two["add_recall"] == 1.0 and two["ar_mspd"] == 1.0 and set(two["per_object"]) == {"8", "11"}
+    assert two["n_gt"] == every["per_object"]["8"]["n_gt"] + every["per_object"]["11"]["n_gt"] > 0
+    assert two["n_gt_all"] == sum(1 for i in im_ids for g in lmo_dev.gt[i] if g.obj_id in (8, 11))
+    only = tmp_path / "only_two"  # a bundle's meshes: the other six are unknown
+    only.mkdir()
+    for o in (8, 11):
+        (only / f"obj_{o:06d}.ply").symlink_to(models / f"obj_{o:06d}.ply")
+    alone = score_results(csv, scene_dir, only, models_info=LMO_INFO, im_ids=im_ids, obj_ids=[8, 11])
+    assert alone["add_recall"] == 1.0 and alone["n_gt"] >= two["n_gt"]
+    seen = score_results(csv, scene_dir, only, models_info=LMO_INFO, im_ids=im_ids, obj_ids=[8, 11],
+                         visibility_models_dir=models)
+    assert seen["n_gt"] == two["n_gt"] and seen["recall_by_visibility"] == two["recall_by_visibility"]
+    with pytest.raises(UserError, match=r"object\(s\) \[1"):  # scoring everything still needs every mesh
+        score_results(csv, scene_dir, only, models_info=LMO_INFO, im_ids=im_ids)
+
+
 def test_models_info_is_computed_once_and_cached(tmp_path, data_dir, monkeypatch):
     import shutil
 

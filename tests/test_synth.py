@@ -421,3 +421,38 @@ def test_a_time_limited_split_stops_with_a_consistent_split_of_what_was_done(dat
         assert {int(f.name[:6]) for f in (out / "000000" / sub).iterdir()} == {0, 1, 2}, sub
     meta = json.loads((out / "synth_config.json").read_text())
     assert meta["time_limited"] and meta["images_written"] == 3 and not meta.get("failed")
+
+
+def test_repeat_objects_fills_an_image_of_few_objects_with_instances_of_them(data_dir, tmp_path):
+    """``repeat_objects``: a split of two objects draws 3-8 instances per image (each object at
+    least once), annotated one by one as BOP allows; without it, each object once."""
+    from dataclasses import asdict
+
+    from tracker.build.synth import engine
+    two = [1, 9]
+    cfg = SynthConfig(models_dir=str(data_dir / "lmo" / "models"), backgrounds_dir=str(data_dir / "backgrounds"),
+                      obj_ids=two, seed=6, repeat_objects=True)
+    engine._init_worker(asdict(cfg))
+    try:
+        counts = []
+        for k in range(20):
+            inst, n_t, _, _ = engine._sample_instances(np.random.default_rng([6, k]), cfg)
+            targets = [i for i, _, _ in inst[:n_t]]
+            assert set(targets) == set(two) and 3 <= n_t <= 8
+            counts.append(n_t)
+            once, n_once, _, _ = engine._sample_instances(np.random.default_rng([6, k]), SynthConfig(
+                **{**asdict(cfg), "repeat_objects": False}))
+            assert sorted(i for i, _, _ in once[:n_once]) == two
+        assert max(counts) > 3
+    finally:
+        for k in ("scene", "crop"):
+            engine._W.pop(k).close()
+    generate(cfg, tmp_path / "r", 2, workers=1, progress=False)
+    scene = load_scene(tmp_path / "r" / "000000", require_gt=True)
+    for i in scene.im_ids:
+        ids = [g.obj_id for g in scene.gt[i]]
+        assert len(ids) >= 3 and set(ids) == set(two)
+        for k, g in enumerate(scene.gt[i]):  # every instance has its own mask and clean target
+            assert (tmp_path / "r" / "000000" / "mask_visib" / f"{i:06d}_{k:06d}.png").is_file()
+            assert (tmp_path / "r" / "000000" / "clean" / f"{i:06d}_{k:06d}.png").is_file()
+    assert json.loads((tmp_path / "r" / "synth_config.json").read_text())["config"]["repeat_objects"] is True

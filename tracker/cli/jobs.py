@@ -156,7 +156,7 @@ def cmd_imu(args) -> int:
 def cmd_eval(args) -> int:
     from tracker.evaluation.evaluate import evaluate
     m = evaluate(args.model, args.data, args.json, boxes=args.boxes, mode=args.mode, bop_csv=args.bop_csv,
-                 max_frames=args.max_frames)
+                 max_frames=args.max_frames, gt_models=args.gt_models)
     from tracker.evaluation.report import fmt_num
     print(f"{m['method']} on {m['n_gt']} instances ({m['boxes']} boxes): ADD(I) {fmt_num(m['add_recall'])}, "
           f"AR_MSSD {fmt_num(m['ar_mssd'])}, AR_MSPD {fmt_num(m['ar_mspd'])}, RE median {fmt_num(m['re_median_deg'], 1)} "
@@ -406,6 +406,10 @@ def add_commands(sub, REPO) -> None:
     s.add_argument("--json", required=True, help="metrics JSON to write")
     s.add_argument("--bop-csv", help="BOP results CSV (default: METHOD_lmo-test.csv beside the JSON)")
     s.add_argument("--max-frames", type=positive_int)
+    s.add_argument("--gt-models", metavar="DIR",
+                   help="for a bundle of some of the scene's objects: meshes of all of them (obj_NNNNNN.ply), so "
+                        "the others still hide parts of the bundle's (default: BOP's models/ beside or above the "
+                        "scene when it has them)")
     s.set_defaults(func=cmd_eval)
 
     s = sub.add_parser("score", help="score a BOP results CSV against a BOP scene")

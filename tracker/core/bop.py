@@ -246,6 +246,13 @@ class Scene:
     def has_gt_info(self) -> bool:
         return (self.root / "scene_gt_info.json").is_file()
 
+    def only(self, obj_ids) -> "Scene":
+        """The same scene with the ground truth of ``obj_ids`` alone (as if the others were absent)."""
+        import dataclasses
+        keep = {int(o) for o in obj_ids}
+        gt = None if self.gt is None else {i: [g for g in lst if g.obj_id in keep] for i, lst in self.gt.items()}
+        return dataclasses.replace(self, gt=gt)
+
 
 def is_scene_dir(root) -> bool:
     """A BOP scene: scene_camera.json beside rgb/ or the frames as one video."""

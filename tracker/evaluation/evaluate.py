@@ -1,6 +1,7 @@
 """``app.py eval``: run a bundle on a BOP scene and score it with the BOP metrics."""
 from __future__ import annotations
 
+import sys
 import time
 from pathlib import Path
 
@@ -9,7 +10,7 @@ from tqdm import tqdm
 
 from tracker.core.bop import Estimate, load_scene, write_results
 from tracker.core.errors import UserError
-from tracker.evaluation.ground_truth import gt_boxes, gt_instances_with_boxes, gt_object_ids
+from tracker.evaluation.ground_truth import gt_boxes, gt_instances_with_boxes, models_for_others
 from tracker.runtime.estimator import Detection, PoseEstimator
 
 
@@ -20,9 +21,14 @@ def bop_csv_name(method: str, dataset: str = "lmo", split: str = "test") -> str:
 
 def evaluate(model_dir, scene_dir, json_path=None, boxes: str = "gt", mode: str = "regression",
              bop_csv=None, max_frames: int | None = None, progress: bool = True,
-             detector_trees_weight: float | None = None) -> dict:
+             detector_trees_weight: float | None = None, gt_models=None) -> dict:
     """``detector_trees_weight``: the trees' share of the distance for the detector's boxes in
-    place of the bundle's (``app.py lab tune-heads`` tries several)."""
+    place of the bundle's (``app.py lab tune-heads`` tries several).
+
+    A bundle of some of the scene's objects (``build --objects``) is scored on the instances
+    of its objects; the others still hide parts of them when their meshes are found
+    (``gt_models``, else a BOP ``models/`` folder beside or above the scene that has them),
+    else they are left out (visibility from the bundle's objects alone, said on stderr)."""
     from tracker.core.meshes import load_models
     from tracker.evaluation.scoring import score_results, write_metrics_json
     if boxes not in ("gt", "detector"):
@@ -43,8 +49,26 @@ def evaluate(model_dir, scene_dir, json_path=None, boxes: str = "gt", mode: str 
     if not im_ids:
         raise UserError(f"{scene_dir}: its ground truth (scene_gt.json) lists no images; nothing to evaluate")
     mesh_dir = Path(model_dir) / "meshes"
-    gt_ids = gt_object_ids(scene, im_ids, est.obj_ids)
-    models = load_models(mesh_dir, gt_ids)
+    ours = set(est.obj_ids)
+    gt_ids = sorted({g.obj_id for i in im_ids for g in scene.gt.get(i, [])})
+    others = [o for o in gt_ids if o not in ours]
+    vis_dir = mesh_dir
+    if others:
+        vis_dir = models_for_others(scene_dir, others, gt_models)
+        scored = [o for o in gt_ids if o in ours]
+        if not scored:
+            raise UserError(f"{scene_dir}: its ground truth has none of the bundle's objects {sorted(ours)} "
+                            f"(it has {gt_ids})")
+        if vis_dir is None:
+            print(f"eval: scoring objects {scored} only; the ground truth's objects {others} are not in the bundle "
+                  f"and no meshes of them were found (--gt-models DIR), so they are left out of the visibility",
+                  file=sys.stderr)
+            scene, vis_dir = scene.only(ours), mesh_dir
+        else:
+            print(f"eval: scoring objects {scored} only (the bundle's); visibility from every object, meshes "
+                  f"from {vis_dir}", file=sys.stderr)
+        gt_ids = sorted({g.obj_id for i in im_ids for g in scene.gt.get(i, [])})
+    models = load_models(vis_dir, gt_ids)
     box_of, _ = gt_boxes(scene, models, im_ids)
     results = []
     all_dets, all_candidates, det_ms = [], [], []
@@ -58,7 +82,8 @@ def evaluate(model_dir, scene_dir, json_path=None, boxes: str = "gt", mode: str 
             all_dets.append(dets)
             all_candidates.append(candidates)
         else:
-            dets = [Detection(o, b, exact=True) for o, b, _ in gt_instances_with_boxes(scene.gt[im_id], box_of[im_id])]
+            dets = [Detection(o, b, exact=True) for o, b, _ in gt_instances_with_boxes(scene.gt[im_id], box_of[im_id])
+                    if o in ours]
         poses = est.estimate(img, scene.K(im_id), dets, mode=mode)
         dt = time.perf_counter() - t0
         t_all += dt
@@ -69,11 +94,14 @@ def evaluate(model_dir, scene_dir, json_path=None, boxes: str = "gt", mode: str 
         bop_csv = base / bop_csv_name(name)
     write_results(bop_csv, results)
     m = score_results(bop_csv, scene_dir, mesh_dir, models_info=mesh_dir / "models_info.json", im_ids=im_ids,
-                      scene_id=0, ms_per_image=1000 * t_all / len(im_ids))
+                      scene_id=0, ms_per_image=1000 * t_all / len(im_ids), obj_ids=sorted(ours) if others else None,
+                      visibility_models_dir=vis_dir)
     if detector is not None:
         from tracker.evaluation.detection_metrics import detection_ap
-        gts = [[(o, b) for o, b, _ in gt_instances_with_boxes(scene.gt[i], box_of[i], 0.1)] for i in im_ids]
-        ign = [[(o, b) for o, b, _ in gt_instances_with_boxes(scene.gt[i], box_of[i], 0.1, below=True)] for i in im_ids]
+        gts = [[(o, b) for o, b, _ in gt_instances_with_boxes(scene.gt[i], box_of[i], 0.1) if o in ours]
+               for i in im_ids]
+        ign = [[(o, b) for o, b, _ in gt_instances_with_boxes(scene.gt[i], box_of[i], 0.1, below=True) if o in ours]
+               for i in im_ids]
         # AP as COCO defines it (the ranked candidates); the run-time detections (the manifest's
         # threshold, one per object) alongside, as the operating point the poses were made from
         m["detection"] = detection_ap(all_candidates, gts, est.obj_ids, ignore=ign)
@@ -83,9 +111,13 @@ def evaluate(model_dir, scene_dir, json_path=None, boxes: str = "gt", mode: str 
         m["detection"]["operating_point"] = detection_ap(all_dets, gts, est.obj_ids, ignore=ign)
         m["detection"]["ms_per_image_median"] = float(np.median(det_ms))
         m["detection"]["visibility_source"] = m.get("visibility_source")
+    if others:
+        m["scored_obj_ids"] = sorted(ours & set(gt_ids))
+        m["visibility_meshes"] = str(vis_dir)
     m.update({"boxes": boxes, "mode": mode, "model": str(model_dir),
               "bundle_manifest_sha256": est.bundle.manifest_sha256, "data": str(scene_dir), "max_frames": max_frames,
               "bop_csv": str(bop_csv), "method": name})
     if json_path:
         write_metrics_json(json_path, m)
     return m
+

@@ -2,6 +2,8 @@
 boxes and visible fractions rendered from the known objects at their ground-truth poses."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from tracker.core.bop import gt_instances_with_boxes  # noqa: F401  (re-exported: the instances a box list keeps)
@@ -36,3 +38,20 @@ def scene_gt_boxes(scene, im_ids, bundle, hint: str = "") -> dict[int, list]:
     ids = gt_object_ids(scene, im_ids, bundle.manifest.obj_ids, hint)
     boxes, _ = gt_boxes(scene, load_models(bundle.root / "meshes", ids), im_ids)
     return boxes
+
+
+def models_for_others(scene_dir, obj_ids, given=None) -> Path | None:
+    """A folder with obj_NNNNNN.ply for every one of ``obj_ids``: ``given`` (an error if it
+    lacks any), else BOP's ``models/`` beside or above the scene (``lmo/dev`` -> ``lmo/models``,
+    ``lmo/test/000002`` -> ``lmo/models``), else None."""
+    def has(d: Path) -> bool:
+        return d.is_dir() and all((d / f"obj_{o:06d}.ply").is_file() for o in obj_ids)
+    if given is not None:
+        if not has(Path(given)):
+            raise UserError(f"--gt-models {given}: needs obj_NNNNNN.ply for object(s) {sorted(obj_ids)}")
+        return Path(given)
+    here = Path(scene_dir).resolve()
+    for d in (here.parent / "models", here.parent.parent / "models"):
+        if has(d):
+            return d
+    return None

@@ -247,29 +247,32 @@ def _errors(est: list[Estimate], gts: list, obj: ObjectEval, K: np.ndarray, r: f
 def score_estimates(estimates: list[Estimate], scene: Scene, objects: dict[int, ObjectEval],
                     visib: dict[int, list[float]], image_width: int, im_ids=None,
                     visibility_source: str | None = None, ms_per_image: float | None = None,
-                    detection: dict | None = None, depth_renderer=None) -> dict:
+                    detection: dict | None = None, depth_renderer=None, obj_ids=None) -> dict:
     """Metrics JSON (CONVENTIONS.md) of ``estimates`` on ``scene``'s images ``im_ids``.
 
     ``estimates`` must already be those of this scene (any scene_id); ``objects`` covers
-    every object of the GT and the estimates; ``visib`` gives every GT instance's visible
-    fraction (:func:`gt_visibility`).
+    every scored object of the GT and the estimates; ``visib`` gives every GT instance's
+    visible fraction (:func:`gt_visibility`). ``obj_ids``: score the instances of these
+    objects only (a bundle of some of the scene's objects); default all.
     """
     if scene.gt is None:
         raise UserError(f"{scene.root}: no scene_gt.json, nothing to score against")
     im_ids = sorted(scene.gt) if im_ids is None else sorted(im_ids)
     r = image_width / 640.0
     by_im: dict[int, dict[int, list[Estimate]]] = {}
+    scored = None if obj_ids is None else {int(o) for o in obj_ids}
     for e in estimates:
-        by_im.setdefault(e.im_id, {}).setdefault(e.obj_id, []).append(e)
+        if scored is None or e.obj_id in scored:
+            by_im.setdefault(e.im_id, {}).setdefault(e.obj_id, []).append(e)
     records: list[_GtRecord] = []
     n_gt_all = 0
     n_est_obj: dict[int, int] = {}
     for i in im_ids:
         gts, vis = scene.gt[i], visib[i]
-        n_gt_all += len(gts)
+        n_gt_all += sum(1 for g in gts if scored is None or g.obj_id in scored)
         for oid, lst in by_im.get(i, {}).items():
             n_est_obj[oid] = n_est_obj.get(oid, 0) + len(lst)
-        for oid in sorted({g.obj_id for g in gts}):
+        for oid in sorted({g.obj_id for g in gts if scored is None or g.obj_id in scored}):
             idx = [j for j, g in enumerate(gts) if g.obj_id == oid]
             valid = np.array([vis[j] >= VISIB_GT_MIN for j in idx])
             n_valid = int(valid.sum())
@@ -305,7 +308,7 @@ def score_estimates(estimates: list[Estimate], scene: Scene, objects: dict[int, 
     out["n_gt_all"] = n_gt_all
     out["n_images"] = len(im_ids)
     out["recall_by_visibility"] = _by_visibility(records)
-    gt_objs = {g.obj_id for i in im_ids for g in scene.gt[i]}
+    gt_objs = {g.obj_id for i in im_ids for g in scene.gt[i] if scored is None or g.obj_id in scored}
     out["per_object"] = {str(k): _summary([rc for rc in records if rc.obj_id == k], n_est_obj.get(k, 0))
                          for k in sorted(gt_objs | set(n_est_obj))}
     out["thresholds"] = {"vsd_delta_mm": VSD_DELTA, "vsd_taus_diameter_fraction": [round(float(t), 6) for t in VSD_TAUS],
@@ -420,14 +423,17 @@ def _pick_scene_id(estimates: list[Estimate], scene: Scene, scene_id: int | None
 
 def score_results(results_csv, scene_dir, models_dir, models_info=None, im_ids=None,
                   scene_id: int | None = None, ms_per_image: float | None = None,
-                  detection: dict | None = None) -> dict:
+                  detection: dict | None = None, obj_ids=None, visibility_models_dir=None) -> dict:
     """Score a BOP results CSV against the BOP scene ``scene_dir`` (with ground truth).
 
     ``models_info``: dict or file; by default ``models_dir/models_info.json``, else computed
     (see :func:`models_info_for`). ``im_ids``: score only these images. ``scene_id``: the
     results' scene to take (default: the only one, or the one named like the folder).
     ``ms_per_image``: by default the mean of the CSV's ``time`` per image (x 1000) when every
-    row has time >= 0 (BOP's average time per image), else null.
+    row has time >= 0 (BOP's average time per image), else null. ``obj_ids``: score only the
+    instances (and estimates) of these objects, e.g. a bundle's few of the scene's many; the
+    others still occlude them where their meshes are known (``visibility_models_dir``, default
+    ``models_dir``: meshes for the visible fractions), and are left out of the scene where not.
     """
     from tracker.core.meshes import MODEL_RE, load_models
     scene = load_scene(scene_dir, require_gt=True)
@@ -457,19 +463,31 @@ def score_results(results_csv, scene_dir, models_dir, models_info=None, im_ids=N
     estimates = [e for e in estimates if e.im_id in im_set]
 
     gt_objs = {g.obj_id for i in im_ids for g in scene.gt[i]}
-    unknown = sorted(gt_objs - known)
+    scored = gt_objs if obj_ids is None else gt_objs & {int(o) for o in obj_ids}
+    if obj_ids is not None:
+        estimates = [e for e in estimates if e.obj_id in set(map(int, obj_ids))]
+    unknown = sorted(scored - known)
     if unknown:
         raise UserError(f"{scene.root}/scene_gt.json has object(s) {unknown} with no model in {models_dir}")
-    need = sorted(gt_objs | {e.obj_id for e in estimates})
+    vis_dir = Path(visibility_models_dir) if visibility_models_dir is not None else models_dir
+    vis_known = {int(MODEL_RE.match(p.name).group(1)) for p in vis_dir.iterdir() if MODEL_RE.match(p.name)} \
+        if vis_dir.is_dir() else set()
+    if gt_objs - vis_known - scored:  # others with no mesh: visibility from the scored objects alone
+        scene = scene.only(gt_objs & vis_known | scored)
+        gt_objs = {g.obj_id for i in im_ids for g in scene.gt[i]}
+    need = sorted(scored | {e.obj_id for e in estimates})
     info = models_info_for(models_dir, models_info)
     lacking = [k for k in need if k not in info]
     if lacking:
         raise UserError(f"models_info has no entry for object(s) {lacking}")
     models = load_models(models_dir, need)
     objects = {k: ObjectEval.from_info(k, models[k].vertices, info[k]) for k in need}
+    vis_from = set(gt_objs) - (scored if vis_dir == models_dir else set())
+    vis_models = {**(load_models(vis_dir, sorted(vis_from)) if vis_from else {}),
+                  **({k: models[k] for k in scored} if vis_dir == models_dir else {})}
 
     width, height = scene.image_size(im_ids[0])
-    visib, source = gt_visibility(scene, models, im_ids, width, height)
+    visib, source = gt_visibility(scene, vis_models, im_ids, width, height)
     depth_renderer = None
     if scene.has_depth:
         from tracker.runtime.render import Renderer
@@ -483,7 +501,7 @@ def score_results(results_csv, scene_dir, models_dir, models_info=None, im_ids=N
             ms_per_image = 1000.0 * float(np.mean(list(times.values())))
     try:
         return score_estimates(estimates, scene, objects, visib, width, im_ids, source, ms_per_image, detection,
-                               depth_renderer)
+                               depth_renderer, obj_ids=None if obj_ids is None else scored)
     finally:
         if depth_renderer is not None:
             depth_renderer.close()

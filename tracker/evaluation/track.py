@@ -17,8 +17,8 @@ def _gt_boxes(scene, im_ids, bundle):
 def track(cfg: TrackConfig, log=print) -> RunSummary:
     """:func:`~tracker.runtime.loop.run_track`, then the accuracy of its poses where the source
     is a BOP scene with ground truth (not for looped, interrupted or object-subset runs, which
-    would count what they skipped as missed, nor where the ground truth has objects the bundle
-    does not know)."""
+    would count what they skipped as missed). Where the ground truth has objects the bundle does
+    not know, the bundle's are scored as ``eval`` scores them."""
     s = run_track(cfg, log=log, gt_boxes=_gt_boxes)
     if cfg.loop or cfg.obj_ids or s.interrupted or not s.frames or s.scene_root is None:
         return s
@@ -29,11 +29,15 @@ def track(cfg: TrackConfig, log=print) -> RunSummary:
             root = Path(s.scene_root)
             gt = load_scene_gt(root / "scene_gt.json") if (root / "scene_gt.json").is_file() else {}
             gt_objs = {g.obj_id for i in s.im_ids for g in gt.get(i, [])}
-            if gt and gt_objs <= set(s.bundle_obj_ids):
+            ours = set(s.bundle_obj_ids)
+            if gt and gt_objs & ours:
+                from tracker.evaluation.ground_truth import models_for_others
                 from tracker.evaluation.scoring import score_results
                 meshes = Path(cfg.model) / "meshes"
+                others = sorted(gt_objs - ours)
                 m = score_results(out / "poses.csv", root, meshes, models_info=meshes / "models_info.json",
-                                  im_ids=s.im_ids, scene_id=s.scene_id)
+                                  im_ids=s.im_ids, scene_id=s.scene_id, obj_ids=sorted(ours) if others else None,
+                                  visibility_models_dir=(models_for_others(root, others) or meshes) if others else None)
                 s.accuracy = {k: m[k] for k in ("n_gt", "add_recall", "ar_mssd", "ar_mspd", "re_median_deg",
                                                 "te_median_mm", "visibility_source")}
         except KeyboardInterrupt:  # the second Ctrl-C: no accuracy, the rest stands
