@@ -246,7 +246,7 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
                  models_info_path=None, codebook_per_object: int = 1500, reg_minutes: float = 5.0,
                  log=print, command: str | None = None, encoder: str = "plain", init_from=None,
                  precision: str = "auto", reg_epochs: int | None = None, lr: float = 1e-3, batch: int = 128,
-                 pretrained: bool = True, device: str = "auto") -> Manifest | None:
+                 pretrained: bool = True, device: str = "auto", kl_warmup: int = 0) -> Manifest | None:
     """``encoder``: plain | resnet | lite0 | lite1 | lite2 (an ImageNet-pretrained trunk; with
     ``pretrained=False`` the same network from random weights, the control). ``lr``, ``batch``:
     the autoencoder's AdamW step size and batch. ``device``: auto | cpu | cuda (auto: a CUDA GPU
@@ -309,7 +309,7 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
         f"{n_obj} objects, budget {minutes:.0f} min, {precision} training passes")
     hist = train_autoencoder(model, cs.x[tr], cs.y[tr], c_all[tr], cs.x[va], cs.y[va], c_all[va], work,
                              minutes=minutes, seed=seed, init_from=init_from, precision=precision, log=log,
-                             lr=lr, batch=batch, device=device)
+                             lr=lr, batch=batch, device=device, kl_warmup=kl_warmup)
 
     if rank != 0:  # the heads, the codebook and the export are the first process's
         dd.finish()

@@ -225,7 +225,7 @@ def cmd_train(args) -> int:
                      models_info_path=args.models_info, reg_minutes=args.reg_minutes, encoder=args.encoder,
                      init_from=args.init_from, precision=args.precision, reg_epochs=args.reg_epochs,
                      lr=args.lr, batch=args.batch, pretrained=not args.no_pretrained, device=args.device,
-                     command="app.py " + " ".join(sys.argv[1:]))
+                     kl_warmup=args.kl_warmup, command="app.py " + " ".join(sys.argv[1:]))
     if m is None:  # a helper process of a torchrun job: the first process writes the bundle
         return 0
     _print_validation(args.out, m)
@@ -469,6 +469,9 @@ def add_commands(sub, REPO) -> None:
                    help="with --encoder lite*: the same network from random weights, BatchNorm learning (the control)")
     s.add_argument("--lr", type=positive_float, default=1e-3, help="the autoencoder's AdamW learning rate")
     s.add_argument("--batch", type=positive_int, default=128, help="the autoencoder's batch size")
+    s.add_argument("--kl-warmup", type=nonnegative_int, default=0, metavar="STEPS",
+                   help="variational methods: raise the KL term's weight from 0 over this many steps (0: full "
+                        "weight from the start)")
     s.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto",
                    help="where the autoencoder trains: a CUDA GPU where torch sees one (auto), or the CPU")
     s.add_argument("--size", type=positive_int, default=64, help="crop side in pixels (thesis: 128)")

@@ -76,13 +76,15 @@ def onehot(obj_idx: np.ndarray, n: int) -> torch.Tensor:
 def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, out_dir: Path,
                       minutes: float = 45.0, batch: int = 128, lr: float = 1e-3, patience: int = 50,
                       seed: int = 0, init_from=None, precision: str = "fp32", max_epochs: int = 1000,
-                      log=print, device: str = "cpu") -> dict:
+                      log=print, device: str = "cpu", kl_warmup: int = 0) -> dict:
     """Train until the time budget, early stopping, or ``max_epochs``. Resumes from
     ``out_dir/ae_checkpoint.pt`` when it exists; otherwise ``init_from`` (another run's
     checkpoint) gives the starting weights and optimiser state, with a fresh budget, history
     and best validation loss (the validation crops differ). ``precision`` ('auto', 'bf16' or
     'fp32', see ``precision.resolve``) is the arithmetic of the training passes; validation is float32.
     ``device``: 'cpu' or 'cuda' (resolved already); batches are cut and augmented on the CPU.
+    ``kl_warmup``: the KL term's weight rises linearly from 0 to ``KL_ALPHA`` over this many
+    steps (0: full weight from the first step).
     Returns the training history."""
     from tracker.build.nets import distributed as dd
     rank, n_proc = dd.world()  # several processes under torchrun: each takes its share of every batch
@@ -139,7 +141,7 @@ def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, ou
         # every process takes the same number of steps (a partial last batch too small to share is left out)
         starts = [i for i in range(0, n, batch) if min(batch, n - i) >= n_proc]
         bar = tqdm(starts, desc=f"epoch {epoch}", unit="batch", leave=False, disable=rank != 0)
-        for i in bar:
+        for step, i in enumerate(bar, start=epoch * len(starts)):
             idx = np.sort(perm[i:i + batch][rank::n_proc])
             xb = prec.channels_last(augment(to_tensor(x_tr[idx]), g).to(device))
             yb = to_tensor(y_tr[idx]).to(device)
@@ -147,7 +149,8 @@ def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, ou
             with prec.autocast(precision, device):
                 recon, mu, logvar = net(xb, cb)
             l2, kl = loss_terms(recon, yb, mu, logvar)
-            loss = l2 + (KL_ALPHA * kl if variational else 0.0)
+            alpha = KL_ALPHA * (min(1.0, step / kl_warmup) if kl_warmup > 0 else 1.0)
+            loss = l2 + (alpha * kl if variational else 0.0)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
