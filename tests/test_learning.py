@@ -131,6 +131,20 @@ def test_eval_scores_a_bundle_of_some_of_the_scenes_objects(bundles, data_dir, t
         evaluate(bundles["cvam"][1], dev, tmp_path / "m3.json", max_frames=3, progress=False, gt_models=tmp_path)
 
 
+def test_kl_warmup_raises_the_kl_weight_step_by_step(tiny_split, tmp_path, monkeypatch):
+    from tracker.build.nets import fit
+    assert fit.kl_weight(0) == fit.kl_weight(10**6) == fit.KL_ALPHA
+    assert fit.kl_weight(0, 1000) == 0.0 and fit.kl_weight(250, 1000) == pytest.approx(fit.KL_ALPHA / 4)
+    assert fit.kl_weight(1000, 1000) == fit.kl_weight(5000, 1000) == fit.KL_ALPHA
+    seen = []
+    real = fit.kl_weight
+    monkeypatch.setattr(fit, "kl_weight", lambda step, warmup=0: seen.append((step, warmup)) or real(step, warmup))
+    train_bundle(tiny_split, tmp_path / "w", method="cvam", size=32, latent=16, minutes=0.02, reg_minutes=0.01,
+                 models_info_path=None, log=lambda *a: None, kl_warmup=7)
+    steps = [st for st, _ in seen]
+    assert seen and all(w == 7 for _, w in seen) and steps == list(range(len(steps)))  # one per step, from 0
+
+
 def test_pose_does_not_depend_on_camera_or_resolution(bundles, tiny_split):
     """The same crop content seen by a camera of another resolution, or with the principal
     point elsewhere, gives the same pose: box features are normalised by the intrinsics.

@@ -69,6 +69,12 @@ def augment(x: torch.Tensor, g: torch.Generator, p: float = 0.3) -> torch.Tensor
     return x
 
 
+def kl_weight(step: int, warmup: int = 0) -> float:
+    """The KL term's weight at training step ``step``: ``KL_ALPHA``, reached linearly from 0
+    over the first ``warmup`` steps when ``warmup`` > 0."""
+    return KL_ALPHA * (min(1.0, step / warmup) if warmup > 0 else 1.0)
+
+
 def onehot(obj_idx: np.ndarray, n: int) -> torch.Tensor:
     return F.one_hot(torch.from_numpy(obj_idx).long(), n).float()
 
@@ -88,6 +94,8 @@ def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, ou
     Returns the training history."""
     from tracker.build.nets import distributed as dd
     rank, n_proc = dd.world()  # several processes under torchrun: each takes its share of every batch
+    # subnormal floats (tiny activations and gradients) take a slow path on x86 CPUs: flush them to zero
+    torch.set_flush_denormal(True)
     torch.manual_seed(seed)
     model.to(device)
     net = model
@@ -149,8 +157,7 @@ def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, ou
             with prec.autocast(precision, device):
                 recon, mu, logvar = net(xb, cb)
             l2, kl = loss_terms(recon, yb, mu, logvar)
-            alpha = KL_ALPHA * (min(1.0, step / kl_warmup) if kl_warmup > 0 else 1.0)
-            loss = l2 + (alpha * kl if variational else 0.0)
+            loss = l2 + (kl_weight(step, kl_warmup) * kl if variational else 0.0)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
