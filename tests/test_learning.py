@@ -143,6 +143,7 @@ def test_kl_warmup_raises_the_kl_weight_step_by_step(tiny_split, tmp_path, monke
                  models_info_path=None, log=lambda *a: None, kl_warmup=7)
     steps = [st for st, _ in seen]
     assert seen and all(w == 7 for _, w in seen) and steps == list(range(len(steps)))  # one per step, from 0
+    assert np.float64(5e-324) > 0  # the subnormal flush of training does not outlive it
 
 
 def test_pose_does_not_depend_on_camera_or_resolution(bundles, tiny_split):
