@@ -106,12 +106,20 @@ def load_mesh(path, obj_id: int | None = None) -> ObjectModel:
     return ObjectModel(obj_id, path, mesh, has_colours)
 
 
+def model_files(models_dir) -> dict[int, Path]:
+    """{obj_id: path} of the ``obj_NNNNNN.ply`` in a folder ({} for a missing folder)."""
+    d = Path(models_dir)
+    if not d.is_dir():
+        return {}
+    return {int(MODEL_RE.match(p.name).group(1)): p for p in sorted(d.iterdir()) if MODEL_RE.match(p.name)}
+
+
 def load_models(models_dir, obj_ids=None) -> dict[int, ObjectModel]:
     """All ``obj_NNNNNN.ply`` of a BOP models folder (or just ``obj_ids``)."""
     d = Path(models_dir)
     if not d.is_dir():
         raise UserError(f"models folder not found: {d}")
-    found = {int(MODEL_RE.match(p.name).group(1)): p for p in sorted(d.iterdir()) if MODEL_RE.match(p.name)}
+    found = model_files(d)
     if not found:
         raise UserError(f"{d}: no obj_NNNNNN.ply models")
     if obj_ids is not None:

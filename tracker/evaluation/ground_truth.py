@@ -44,8 +44,10 @@ def models_for_others(scene_dir, obj_ids, given=None) -> Path | None:
     """A folder with obj_NNNNNN.ply for every one of ``obj_ids``: ``given`` (an error if it
     lacks any), else BOP's ``models/`` beside or above the scene (``lmo/dev`` -> ``lmo/models``,
     ``lmo/test/000002`` -> ``lmo/models``), else None."""
+    from tracker.core.meshes import model_files
+
     def has(d: Path) -> bool:
-        return d.is_dir() and all((d / f"obj_{o:06d}.ply").is_file() for o in obj_ids)
+        return set(obj_ids) <= set(model_files(d))
     if given is not None:
         if not has(Path(given)):
             raise UserError(f"--gt-models {given}: needs obj_NNNNNN.ply for object(s) {sorted(obj_ids)}")

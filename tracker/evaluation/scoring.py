@@ -247,32 +247,29 @@ def _errors(est: list[Estimate], gts: list, obj: ObjectEval, K: np.ndarray, r: f
 def score_estimates(estimates: list[Estimate], scene: Scene, objects: dict[int, ObjectEval],
                     visib: dict[int, list[float]], image_width: int, im_ids=None,
                     visibility_source: str | None = None, ms_per_image: float | None = None,
-                    detection: dict | None = None, depth_renderer=None, obj_ids=None) -> dict:
+                    detection: dict | None = None, depth_renderer=None) -> dict:
     """Metrics JSON (CONVENTIONS.md) of ``estimates`` on ``scene``'s images ``im_ids``.
 
     ``estimates`` must already be those of this scene (any scene_id); ``objects`` covers
-    every scored object of the GT and the estimates; ``visib`` gives every GT instance's
-    visible fraction (:func:`gt_visibility`). ``obj_ids``: score the instances of these
-    objects only (a bundle of some of the scene's objects); default all.
+    every object of the GT and the estimates; ``visib`` gives every GT instance's visible
+    fraction (:func:`gt_visibility`).
     """
     if scene.gt is None:
         raise UserError(f"{scene.root}: no scene_gt.json, nothing to score against")
     im_ids = sorted(scene.gt) if im_ids is None else sorted(im_ids)
     r = image_width / 640.0
     by_im: dict[int, dict[int, list[Estimate]]] = {}
-    scored = None if obj_ids is None else {int(o) for o in obj_ids}
     for e in estimates:
-        if scored is None or e.obj_id in scored:
-            by_im.setdefault(e.im_id, {}).setdefault(e.obj_id, []).append(e)
+        by_im.setdefault(e.im_id, {}).setdefault(e.obj_id, []).append(e)
     records: list[_GtRecord] = []
     n_gt_all = 0
     n_est_obj: dict[int, int] = {}
     for i in im_ids:
         gts, vis = scene.gt[i], visib[i]
-        n_gt_all += sum(1 for g in gts if scored is None or g.obj_id in scored)
+        n_gt_all += len(gts)
         for oid, lst in by_im.get(i, {}).items():
             n_est_obj[oid] = n_est_obj.get(oid, 0) + len(lst)
-        for oid in sorted({g.obj_id for g in gts if scored is None or g.obj_id in scored}):
+        for oid in sorted({g.obj_id for g in gts}):
             idx = [j for j, g in enumerate(gts) if g.obj_id == oid]
             valid = np.array([vis[j] >= VISIB_GT_MIN for j in idx])
             n_valid = int(valid.sum())
@@ -308,7 +305,7 @@ def score_estimates(estimates: list[Estimate], scene: Scene, objects: dict[int, 
     out["n_gt_all"] = n_gt_all
     out["n_images"] = len(im_ids)
     out["recall_by_visibility"] = _by_visibility(records)
-    gt_objs = {g.obj_id for i in im_ids for g in scene.gt[i] if scored is None or g.obj_id in scored}
+    gt_objs = {g.obj_id for i in im_ids for g in scene.gt[i]}
     out["per_object"] = {str(k): _summary([rc for rc in records if rc.obj_id == k], n_est_obj.get(k, 0))
                          for k in sorted(gt_objs | set(n_est_obj))}
     out["thresholds"] = {"vsd_delta_mm": VSD_DELTA, "vsd_taus_diameter_fraction": [round(float(t), 6) for t in VSD_TAUS],
@@ -435,12 +432,12 @@ def score_results(results_csv, scene_dir, models_dir, models_info=None, im_ids=N
     others still occlude them where their meshes are known (``visibility_models_dir``, default
     ``models_dir``: meshes for the visible fractions), and are left out of the scene where not.
     """
-    from tracker.core.meshes import MODEL_RE, load_models
+    from tracker.core.meshes import load_models, model_files
     scene = load_scene(scene_dir, require_gt=True)
     models_dir = Path(models_dir)
     if not models_dir.is_dir():
         raise UserError(f"models folder not found: {models_dir}")
-    known = {int(MODEL_RE.match(p.name).group(1)) for p in models_dir.iterdir() if MODEL_RE.match(p.name)}
+    known = set(model_files(models_dir))
     if not known:
         raise UserError(f"{models_dir}: no obj_NNNNNN.ply models")
     estimates = read_results(results_csv, known_obj_ids=known)
@@ -470,8 +467,7 @@ def score_results(results_csv, scene_dir, models_dir, models_info=None, im_ids=N
     if unknown:
         raise UserError(f"{scene.root}/scene_gt.json has object(s) {unknown} with no model in {models_dir}")
     vis_dir = Path(visibility_models_dir) if visibility_models_dir is not None else models_dir
-    vis_known = {int(MODEL_RE.match(p.name).group(1)) for p in vis_dir.iterdir() if MODEL_RE.match(p.name)} \
-        if vis_dir.is_dir() else set()
+    vis_known = set(model_files(vis_dir))
     if gt_objs - vis_known - scored:  # others with no mesh: visibility from the scored objects alone
         scene = scene.only(gt_objs & vis_known | scored)
         gt_objs = {g.obj_id for i in im_ids for g in scene.gt[i]}
@@ -488,6 +484,9 @@ def score_results(results_csv, scene_dir, models_dir, models_info=None, im_ids=N
 
     width, height = scene.image_size(im_ids[0])
     visib, source = gt_visibility(scene, vis_models, im_ids, width, height)
+    if obj_ids is not None:  # the others occluded; now the scored objects' instances alone
+        visib = {i: [v for v, g in zip(visib[i], scene.gt[i]) if g.obj_id in scored] for i in im_ids}
+        scene = scene.only(scored)
     depth_renderer = None
     if scene.has_depth:
         from tracker.runtime.render import Renderer
@@ -501,7 +500,7 @@ def score_results(results_csv, scene_dir, models_dir, models_info=None, im_ids=N
             ms_per_image = 1000.0 * float(np.mean(list(times.values())))
     try:
         return score_estimates(estimates, scene, objects, visib, width, im_ids, source, ms_per_image, detection,
-                               depth_renderer, obj_ids=None if obj_ids is None else scored)
+                               depth_renderer)
     finally:
         if depth_renderer is not None:
             depth_renderer.close()
