@@ -49,6 +49,12 @@ def test_every_method_trains_exports_and_runs(bundles, tiny_split, method):
     assert manifest.method == method.split("-")[0] and manifest.pose_prior == "table"
     assert manifest.encoder == ("resnet" if method.endswith("resnet") else "plain")
     assert manifest.training["onnx_max_abs_diff"] <= 1e-4
+    import onnx
+    ops = {n.op_type for n in onnx.load(str(path / "encoder.onnx")).graph.node}
+    assert "Conv" in ops and "BatchNormalization" not in ops  # trained with BatchNorm, folded into the convs
+    import torch
+    state = torch.load(path.parent / f"{path.name}.work" / "ae_best.pt", weights_only=True)
+    assert any(k.endswith("norm.running_var") for k in state)
     assert {o.id for o in manifest.objects} == set(OBJS)
     est = PoseEstimator(path)
     scene = load_scene(tiny_split / "000000", require_gt=True)

@@ -1,5 +1,6 @@
 import filecmp
 import json
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -456,3 +457,15 @@ def test_repeat_objects_fills_an_image_of_few_objects_with_instances_of_them(dat
             assert (tmp_path / "r" / "000000" / "mask_visib" / f"{i:06d}_{k:06d}.png").is_file()
             assert (tmp_path / "r" / "000000" / "clean" / f"{i:06d}_{k:06d}.png").is_file()
     assert json.loads((tmp_path / "r" / "synth_config.json").read_text())["config"]["repeat_objects"] is True
+
+
+def test_a_split_made_from_relative_folders_finds_its_meshes_from_anywhere(data_dir, tmp_path, monkeypatch):
+    """synth_config.json records absolute folders: `train` (or a resumed `build`) run from
+    another working folder still finds the meshes and backgrounds."""
+    monkeypatch.chdir(data_dir)
+    cfg = SynthConfig(models_dir="lmo/models", backgrounds_dir="backgrounds", obj_ids=[1], objects_per_image=(1, 1))
+    generate(cfg, tmp_path / "split", 1, workers=1, progress=False)
+    monkeypatch.chdir(tmp_path)
+    c = json.loads((tmp_path / "split" / "synth_config.json").read_text())["config"]
+    assert Path(c["models_dir"]).is_absolute() and (Path(c["models_dir"]) / "obj_000001.ply").is_file()
+    assert Path(c["backgrounds_dir"]).is_absolute() and Path(c["backgrounds_dir"]).is_dir()

@@ -412,6 +412,9 @@ def generate(cfg: SynthConfig, out_dir, n_images: int, workers: int = 2, batch: 
     models = load_models(cfg.models_dir, cfg.obj_ids)  # fail early (and warn once) on bad meshes
     if cfg.obj_ids is None:
         cfg.obj_ids = sorted(models)
+    # absolute, so that the split's synth_config.json still finds them from another working
+    # folder (train reads the meshes from it; a build resumed elsewhere)
+    cfg.models_dir, cfg.backgrounds_dir = str(Path(cfg.models_dir).resolve()), str(Path(cfg.backgrounds_dir).resolve())
     out = Path(out_dir)
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise UserError(f"--out {out} is not an empty folder: give a new one (old images would be mixed in)")
