@@ -54,7 +54,7 @@ def test_every_method_trains_exports_and_runs(bundles, tiny_split, method):
     assert "Conv" in ops and "BatchNormalization" not in ops  # trained with BatchNorm, folded into the convs
     import torch
     state = torch.load(path.parent / f"{path.name}.work" / "ae_best.pt", weights_only=True)
-    assert any(k.endswith("norm.running_var") for k in state)
+    assert any(k.endswith("norm.running_var") for k in state) and manifest.training["ae_norm"] == "batch"
     assert {o.id for o in manifest.objects} == set(OBJS)
     est = PoseEstimator(path)
     scene = load_scene(tiny_split / "000000", require_gt=True)
@@ -607,3 +607,15 @@ def test_the_detector_trains_under_torchrun_with_two_processes(tiny_bundle, tmp_
     assert t["processes"] == 2 and t["steps"] >= 1 and t["onnx_max_abs_diff"] <= 1e-4
     assert r.stdout.count("detector added to") == 1  # one report, from the first process
     assert isinstance(Detector(b)(np.full((480, 640, 3), 120, np.uint8)), list)
+
+
+def test_a_split_whose_meshes_are_gone_is_refused_before_training(tiny_split, tmp_path):
+    split = tmp_path / "split"
+    shutil.copytree(tiny_split, split)
+    cfg = json.loads((split / "synth_config.json").read_text())
+    cfg["config"]["models_dir"] = str(tmp_path / "moved_away")
+    (split / "synth_config.json").write_text(json.dumps(cfg))
+    logs = []
+    with pytest.raises(UserError, match="meshes it was rendered from .* are gone"):
+        train_bundle(split, tmp_path / "b", method="cvml", size=32, latent=16, minutes=5, log=logs.append)
+    assert not logs and not (tmp_path / "b.work").exists()  # nothing trained, nothing cut

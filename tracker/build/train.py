@@ -275,6 +275,10 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
     if not cfg_path.is_file():
         raise UserError(f"{data_dir}: no synth_config.json; make training data with 'app.py synth'")
     synth = json.loads(cfg_path.read_text())
+    mdir = Path(synth["config"]["models_dir"])  # the bundle's meshes: missing, before the training, not after it
+    if not mdir.is_dir():
+        raise UserError(f"{data_dir}: the meshes it was rendered from ({mdir}) are gone; run from the folder "
+                        f"'synth' ran in, or re-render the split")
     work = work_dir(out)  # checkpoints and caches, outside the bundle
     work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
@@ -321,7 +325,6 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
     mu_exact = encode_all(model, cs_exact.x, cond)
     cs_h, mu_h, tr_h, va_h = with_exact_boxes(cs, mu, cs_exact, mu_exact, tr, va)
 
-    mdir = Path(synth["config"]["models_dir"])
     models_info = load_models_info(models_info_path) if models_info_path else None
     if models_info is None:
         from tracker.core.meshes import compute_models_info
@@ -376,6 +379,7 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
                       "ae_minutes": round(hist["seconds"][-1] / 60, 1) if hist["seconds"] else 0.0,
                       "total_minutes": round((time.perf_counter() - t0) / 60, 1),
                       "knn": dist_info["knn"], "seed": seed, "precision": precision, "device": device, "lr": lr, "batch": batch,
+                      "ae_norm": "batch",  # BatchNorm after every conv (folded into the exported convs)
                       **({"processes": n_proc} if n_proc > 1 else {}),
                       **({"pretrained": pretrained} if encoder not in ("plain", "resnet") else {}),
                       **({"init_from": str(init_from)} if init_from else {}), "onnx_max_abs_diff": diff},

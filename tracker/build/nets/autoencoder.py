@@ -16,7 +16,8 @@ by default; export folds it into the conv) and SiLU, nearest-neighbour upsamplin
 decoder (no transposed convolutions). Without the BatchNorm, training from scratch sat for
 ~500 steps at the per-object mean image (validation L2 ~330 on a two-object build; a plain
 autoencoder without the VAE's noise saturated at the black image and never left it); with it
-the same crops passed that level after 150 steps (docs/experiments/stop-45.md). The encoder's ``forward`` returns ``mu`` only: that is what is exported to ONNX.
+the same crops passed that level after 150 steps (docs/experiments/stop-45.md). The encoder's
+``forward`` returns ``mu`` only: that is what is exported to ONNX.
 """
 from __future__ import annotations
 
