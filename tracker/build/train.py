@@ -379,7 +379,9 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
                       "ae_minutes": round(hist["seconds"][-1] / 60, 1) if hist["seconds"] else 0.0,
                       "total_minutes": round((time.perf_counter() - t0) / 60, 1),
                       "knn": dist_info["knn"], "seed": seed, "precision": precision, "device": device, "lr": lr, "batch": batch,
-                      "ae_norm": "batch",  # BatchNorm after every conv (folded into the exported convs)
+                      # BatchNorm after every conv (folded into the exported convs), read off the network
+                      "ae_norm": "batch" if any(isinstance(m, torch.nn.BatchNorm2d) for m in model.decoder.modules())
+                      else "none",
                       **({"processes": n_proc} if n_proc > 1 else {}),
                       **({"pretrained": pretrained} if encoder not in ("plain", "resnet") else {}),
                       **({"init_from": str(init_from)} if init_from else {}), "onnx_max_abs_diff": diff},
