@@ -161,21 +161,37 @@ def _table_camera(elevation_deg, dist=900.0):
 
 
 def test_table_surface_lies_on_the_plane_the_objects_stand_on():
+    import copy
     from tracker.core.camera import LMO_K
-    from tracker.build.synth.randomise import _table_point, table_surface
-    rng = np.random.default_rng(0)
-    tex = rng.integers(0, 255, (480, 640, 3), dtype=np.uint8)
+    from tracker.build.synth.randomise import table_surface
+    h, w = 480, 640
+    ramp = np.broadcast_to(np.linspace(0, 255, w, dtype=np.float32)[None, :, None], (h, w, 3)).astype(np.uint8)
     R, t = _table_camera(30.0)
-    # a point on the table projects to a pixel whose ray meets the table at that point
-    P = np.array([[120.0, -80.0, 0.0]])
-    uv = project(P, LMO_K, R, t)[0]
-    X, Y, lam = _table_point(np.array(uv[0]), np.array(uv[1]), LMO_K, R, t)
-    assert lam > 0 and np.allclose([X, Y], P[0, :2], atol=1e-6)
-    img, mask = table_surface(tex, LMO_K, R, t, rng)
-    assert img.shape == tex.shape and mask.dtype == bool
+    rng = np.random.default_rng(0)
+    draws = copy.deepcopy(rng)
+    half, mm_per_px, a = draws.uniform(500, 1500, 2), draws.uniform(400, 1500) / w, draws.uniform(0, 2 * np.pi)
+    g = draws.uniform(-0.25, 0.25), draws.uniform(-0.25, 0.25)
+    img, mask = table_surface(ramp, LMO_K, R, t, rng)
+    assert img.shape == ramp.shape and mask.dtype == bool
     assert mask[-1].all() and not mask[0].any()  # the table below, beyond its edge / the horizon above
+    eye = -R.T @ t
+    for X, Y in ((30.0, -20.0), (-60.0, 45.0), (0.9 * half[0], 0.0), (1.1 * half[0], 0.0), (0.0, 1.1 * half[1])):
+        u, v = project(np.array([[X, Y, 0.0]]), LMO_K, R, t)[0].round().astype(int)
+        inside = abs(X) < half[0] and abs(Y) < half[1]
+        if not (0 <= u < w and 0 <= v < h):
+            continue
+        assert mask[v, u] == inside, (X, Y)
+        if not inside:
+            continue
+        # the texture at the table point seen through that pixel's centre, shaded
+        ray = R.T @ np.linalg.solve(LMO_K, [u, v, 1.0])
+        P = eye - eye[2] / ray[2] * ray
+        tx = (np.cos(a) * P[0] - np.sin(a) * P[1]) / mm_per_px + w / 2
+        if 0 <= tx <= w - 1:
+            shade = 1 + g[0] * (u - w / 2) / w + g[1] * (v - h / 2) / h
+            assert abs(int(img[v, u, 0]) - tx * 255 / (w - 1) * shade) <= 2, (X, Y)
     top_down, _ = _table_camera(89.0, 600.0)
-    assert table_surface(tex, LMO_K, top_down, _table_camera(89.0, 600.0)[1], rng)[1].all()
+    assert table_surface(ramp, LMO_K, top_down, _table_camera(89.0, 600.0)[1], rng)[1].all()
 
 
 def test_shadows_darken_the_table_near_the_object_only():

@@ -48,6 +48,7 @@ DISTRACTOR_SETS = {"plain": (12, 0), "hard": (36, 0), "household": (18, 18)}
 DISTRACTOR_STYLES = tuple(DISTRACTOR_SETS)
 LIGHTING_STYLES = ("camera", "overhead")
 PHOTO_DISTRACTORS = ("hard", "household")  # textured from the photos, tinted, 2-8 per image
+SHADOW_POINTS = 400  # about this many of an object's vertices outline its shadow (randomise.cast_shadows)
 
 
 @dataclass
@@ -113,9 +114,10 @@ _W = {}  # per-process state: renderers, meshes, backgrounds
 
 def _init_worker(cfg_dict: dict):
     os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
-    # one rasteriser thread per worker: two workers with llvmpipe's default thread per core
-    # fight over the 2 cores (measured 8.1 -> 9.4 images/s at 640x480, --mesh-faces 4000)
-    os.environ.setdefault("LP_NUM_THREADS", "1")
+    # llvmpipe rasterises in the worker's own thread: its default (a thread per core) and even
+    # one thread of its own make two workers fight over 2 cores (measured at 640x480,
+    # --mesh-faces 4000: 8.1 images/s with the default, 9.1 with one thread, 10.8 with none)
+    os.environ.setdefault("LP_NUM_THREADS", "0")
     import warnings
     warnings.simplefilter("ignore")  # a colourless mesh warns once in the parent, not per worker
     cv2.setNumThreads(1)
@@ -136,20 +138,34 @@ def _init_worker(cfg_dict: dict):
         meshes = {k: decimate_mesh(m, cfg.mesh_faces) for k, m in meshes.items()}
     targets = dict(meshes)
     meshes.update({DISTRACTOR_BASE + i: m for i, m in enumerate(dis)})
+    verts = {**{k: np.asarray(m.vertices) for k, m in models.items()},
+             **{DISTRACTOR_BASE + i: np.asarray(m.vertices) for i, m in enumerate(dis)}}
+    # the hull's vertices give the same extremes as all of them (a resting height, a projected
+    # box: a linear or linear-fractional function's extreme over a convex body is at a vertex)
+    # at a fraction of the points (the full driller: 12,655; its hull: ~1,000)
+    hull = {k: _hull_vertices(v) for k, v in verts.items()}
     _W.update(
         cfg=cfg,
         K=np.asarray(cfg.K, dtype=np.float64),
         obj_ids=sorted(models),
-        verts={**{k: m.vertices for k, m in models.items()},
-               **{DISTRACTOR_BASE + i: np.asarray(m.vertices) for i, m in enumerate(dis)}},
-        radius={**{k: diameter(m.vertices) / 2 for k, m in models.items()},
-                **{DISTRACTOR_BASE + i: diameter(np.asarray(m.vertices)) / 2 for i, m in enumerate(dis)}},
+        verts=verts,
+        hull=hull,
+        shadow_verts={k: v[:: max(1, len(v) // SHADOW_POINTS)] for k, v in verts.items()},
+        radius={k: diameter(v) / 2 for k, v in hull.items()},
         n_dis=len(dis),
         scene=Renderer(cfg.width, cfg.height, meshes),
         crop=Renderer(cfg.crop_size, cfg.crop_size, targets),
         bgs=bgs,
         palette=target_palette([models[k].mesh for k in sorted(models)], np.random.default_rng([cfg.seed, 9])),
     )
+
+
+def _hull_vertices(v: np.ndarray) -> np.ndarray:
+    from scipy.spatial import ConvexHull
+    try:
+        return v[ConvexHull(v).vertices]
+    except Exception:  # degenerate (flat) meshes: all vertices
+        return v
 
 
 def _sample_instances(rng, cfg: SynthConfig):
@@ -169,7 +185,7 @@ def _sample_instances(rng, cfg: SynthConfig):
     dis = [DISTRACTOR_BASE + int(x) for x in rng.integers(0, _W["n_dis"], n_d)]
     ids = targets + dis
     if cfg.prior == "table":
-        poses, table = priors.sample_table_scene(rng, [_W["verts"][i] for i in ids], [_W["radius"][i] for i in ids])
+        poses, table = priors.sample_table_scene(rng, [_W["hull"][i] for i in ids], [_W["radius"][i] for i in ids])
     else:
         poses, table = priors.sample_sphere_scene(rng, [_W["radius"][i] for i in ids], K, (cfg.width, cfg.height)), None
     inst = [(i, R, t) for i, (R, t) in zip(ids, poses)]
@@ -187,7 +203,7 @@ def _table_background(bg, rng, cfg: SynthConfig, inst, n_on_table, table, light_
     R_w2c, t_w2c = table
     top, mask = table_surface(_W["bgs"].sample(rng, cfg.width, cfg.height), _W["K"], R_w2c, t_w2c, rng)
     bg = np.where(mask[..., None], top, bg)
-    world = [((_W["verts"][i] @ R.T) + t - t_w2c) @ R_w2c for i, R, t in inst[:n_on_table]]
+    world = [((_W["shadow_verts"][i] @ R.T) + t - t_w2c) @ R_w2c for i, R, t in inst[:n_on_table]]
     return cast_shadows(bg, world, R_w2c.T @ np.asarray(light_dir_c, np.float64), _W["K"], R_w2c, t_w2c, rng)
 
 def render_one(index: int, out_root: str) -> dict:
@@ -219,7 +235,7 @@ def render_one(index: int, out_root: str) -> dict:
     crop_r.set_lights([((0.0, 0.0, 1.0), (1.0, 1.0, 1.0), 2.5)])  # neutral light for the targets
     crop_r.set_ambient(0.45)
     labels = scene.render_labels(K, inst)
-    for k, vis in enumerate(scene_visibility(scene, crop_r, K, inst, _W["verts"], n_t, labels, keep_rgb=True)):
+    for k, vis in enumerate(scene_visibility(scene, crop_r, K, inst, _W["hull"], n_t, labels, keep_rgb=True)):
         oid, R, t = inst[k]
         jitter_colours(rgb, vis.mask_visib, vis.bbox_visib, rng)
         win = vis.window
