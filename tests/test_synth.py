@@ -1,4 +1,5 @@
 import filecmp
+import shutil
 import json
 from pathlib import Path
 
@@ -107,6 +108,39 @@ def test_same_seed_same_output(small_split, tmp_path, data_dir):
         assert not mismatch and not errors, (sub, mismatch[:3])
 
 
+def test_forked_workers_render_the_same_split(small_split, tmp_path, data_dir):
+    """Workers forked from a process without a GL context (the CLI's case) start with its
+    meshes and modules, and render the images one in-process worker rendered (small_split)."""
+    import subprocess
+    import sys
+    script = (
+        "import sys\n"
+        "from tracker.build.synth.engine import SynthConfig, generate, start_method\n"
+        f"cfg = SynthConfig(models_dir={str(data_dir / 'lmo' / 'models')!r}, "
+        f"backgrounds_dir={str(data_dir / 'backgrounds')!r}, obj_ids={OBJS!r}, seed=5)\n"
+        "assert start_method() == 'fork', start_method()\n"
+        f"generate(cfg, {str(tmp_path / 'forked')!r}, 8, workers=2, progress=False)\n"
+        "from tracker.runtime.render import contexts_made\n"
+        "assert contexts_made() == 0  # the parent never made a GL context\n")
+    res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300,
+                         cwd=Path(__file__).resolve().parents[1])
+    assert res.returncode == 0, res.stderr[-2000:]
+    a, b = small_split / "000000", tmp_path / "forked" / "000000"
+    for name in ("scene_gt.json", "scene_gt_info.json", "clean_crops.json"):
+        assert (a / name).read_text() == (b / name).read_text(), name
+    for sub in ("rgb", "mask_visib", "clean"):
+        files = sorted(p.name for p in (a / sub).iterdir())
+        match, mismatch, errors = filecmp.cmpfiles(a / sub, b / sub, files, shallow=False)
+        assert not mismatch and not errors, (sub, mismatch[:3])
+
+
+def test_no_fork_after_a_gl_context(small_split):
+    """This process rendered small_split in-process (a GL context): its pools must spawn."""
+    from tracker.build.synth.engine import start_method
+    from tracker.runtime.render import contexts_made
+    assert contexts_made() > 0 and start_method() == "spawn"
+
+
 def test_preview_montage(small_split, tmp_path):
     from tracker.build.synth.preview import preview
     p = preview(small_split, tmp_path / "preview.png", n_scenes=4, n_crops=8)
@@ -135,8 +169,16 @@ def test_bad_input(data_dir, tmp_path):
         generate(cfg, tmp_path / "b", 2, workers=1, progress=False)
     (tmp_path / "empty").mkdir()
     cfg.backgrounds_dir = str(tmp_path / "empty")
-    with pytest.raises(UserError, match="no .jpg/.png"):
+    with pytest.raises(UserError, match="no readable .jpg/.png"):
         generate(cfg, tmp_path / "c", 2, workers=1, progress=False)
+    (tmp_path / "empty" / "notes.jpg").write_text("not a photo")  # skipped by its signature
+    with pytest.raises(UserError, match="no readable .jpg/.png"):
+        generate(cfg, tmp_path / "c2", 2, workers=1, progress=False)
+    assert not (tmp_path / "c2" / "000000").exists()
+    from tracker.build.synth.randomise import list_backgrounds
+    photo = sorted((data_dir / "backgrounds").glob("*.jpg"))[0]
+    shutil.copy(photo, tmp_path / "empty" / photo.name)
+    assert [p.name for p in list_backgrounds(tmp_path / "empty")] == [photo.name]
     models = tmp_path / "models"
     models.mkdir()
     (models / "obj_000001.ply").write_text("ply\nformat ascii 1.0\nelement vertex 3\ngarbage")

@@ -204,7 +204,8 @@ def cmd_synth(args) -> int:
     if args.preview and (Path(args.preview).is_dir() or Path(args.preview).suffix.lower() not in (".png", ".jpg", ".jpeg")):
         raise UserError(f"--preview {args.preview}: name a .png or .jpg file")  # before the rendering, not after
     cfg = SynthConfig(models_dir=str(args.models), backgrounds_dir=str(args.backgrounds or shared_data() / "backgrounds"),
-                      seed=args.seed, prior=args.prior, obj_ids=obj_ids, mesh_faces=args.mesh_faces, depth=args.depth,
+                      seed=args.seed, prior=args.prior, obj_ids=obj_ids, depth=args.depth,
+                      mesh_faces=SynthConfig.mesh_faces if args.mesh_faces is None else (args.mesh_faces or None),
                       p_table=args.p_table, p_gloss=args.gloss, distractors=args.distractors,
                       lighting=args.lighting, repeat_objects=args.repeat_objects)
     rep = generate(cfg, args.out, args.images, workers=args.workers, command="app.py " + " ".join(sys.argv[1:]),
@@ -451,9 +452,9 @@ def add_commands(sub, REPO) -> None:
                         "machine of a cluster's array job; 'app.py lab join-splits' joins the parts into the "
                         "same images as one run")
     s.add_argument("--depth", action="store_true", help="also write depth images (depth/, for VSD)")
-    s.add_argument("--mesh-faces", type=positive_int, default=None, metavar="N",
-                   help="render the objects decimated to about N faces: faster on the CPU rasteriser, "
-                        "slightly smoother colours (default: the full meshes)")
+    s.add_argument("--mesh-faces", type=nonnegative_int, default=None, metavar="N",
+                   help="render the objects decimated to about N faces: the CPU rasteriser's cost grows with "
+                        "triangles (0: the full meshes; default: 4000, SynthConfig.mesh_faces)")
     s.add_argument("--preview", help="PNG montage of samples, boxes, visible fractions and crops")
     s.set_defaults(func=cmd_synth)
 

@@ -42,6 +42,12 @@ def _pyrender():
 
 
 MAX_LIGHTS = 4
+_CONTEXTS = [0]  # GL contexts this process has made (a fork after one hangs: synth checks)
+
+
+def contexts_made() -> int:
+    return _CONTEXTS[0]
+
 
 
 def _light_pose(direction_cv: np.ndarray) -> np.ndarray:
@@ -112,6 +118,7 @@ class Renderer:
         except Exception as e:
             raise UserError(f"cannot create an offscreen GL context ({e.__class__.__name__}: {e}); "
                             f"set PYOPENGL_PLATFORM=egl and check Mesa's EGL is installed") from None
+        _CONTEXTS[0] += 1
         self.scene = pr.Scene(bg_color=np.zeros(4), ambient_light=np.full(3, ambient))
         self._meshes = {int(k): _to_pyrender(pr, m) for k, m in meshes.items()}
         # Nodes stay in the scene for the renderer's life: removing a mesh from the scene

@@ -87,8 +87,10 @@ class SynthConfig:
     jpeg_quality: tuple = (70, 95)
     obj_ids: list | None = None
     # render the objects with their meshes decimated to about this many faces (the CPU
-    # rasteriser's cost grows with triangles); None: the full meshes
-    mesh_faces: int | None = None
+    # rasteriser's cost grows with triangles); None: the full meshes. LM-O's 8 at 4,000 (from
+    # 12-46 k): 150 against 250 ms per image, masks' IoU with the full meshes' 0.998, clean
+    # targets 2.1 / 255 apart; 2,000-3,000 were no faster
+    mesh_faces: int | None = 4000
     depth: bool = False  # write depth/NNNNNN.png (uint16, DEPTH_SCALE mm per unit), as BOP scenes have
 
 
@@ -112,7 +114,9 @@ class SynthReport:
 _W = {}  # per-process state: renderers, meshes, backgrounds
 
 
-def _init_worker(cfg_dict: dict):
+def _init_worker(cfg_dict: dict, models: dict | None = None):
+    """A render worker's state: its meshes (``models``: the parent's, when it forked), the
+    distractors, backgrounds and its two renderers."""
     os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
     # llvmpipe rasterises in the worker's own thread: its default (a thread per core) and even
     # one thread of its own make two workers fight over 2 cores (measured at 640x480,
@@ -124,7 +128,8 @@ def _init_worker(cfg_dict: dict):
     from tracker.core.meshes import diameter, load_models
     from tracker.runtime.render import Renderer
     cfg = SynthConfig(**cfg_dict)
-    models = load_models(cfg.models_dir, cfg.obj_ids)
+    if models is None:
+        models = load_models(cfg.models_dir, cfg.obj_ids)
     photo = cfg.distractors in PHOTO_DISTRACTORS
     n_primitives, n_household = DISTRACTOR_SETS[cfg.distractors]
     dis = distractor_meshes(np.random.default_rng([cfg.seed, 7]), n_primitives) + \
@@ -323,20 +328,44 @@ RETRIES = 3  # pools in a row that may die without finishing a batch before the 
 STALL_S = 600.0  # no batch finished for this long: the workers are taken as hung
 
 
-def _pooled(cfg: SynthConfig, tasks, workers: int, bar):
-    """The batches' records as they finish, rendered by ``workers`` spawned processes
-    (``concurrent.futures``, which notices a worker that dies). A batch whose worker died (a
-    Mesa segfault, say) or hung is rendered again by a fresh pool: images are drawn from their
-    own seeds, so the new render is the same image, and it overwrites any files the lost one
-    left. :data:`RETRIES` pools in a row that die without finishing a batch end the job with an
-    error (a batch that kills every renderer)."""
+def start_method() -> str:
+    """How ``synth`` starts its workers: 'fork' where that is safe, 'spawn' otherwise.
+
+    A forked worker starts in ~0.1 s with the parent's modules and meshes; a spawned one
+    imports and loads them again (~1 s each here). Forking is unsafe after this process made
+    a GL context (Mesa's state is not fork-safe: the child hangs), once another thread runs
+    (its locks are copied mid-use; tqdm's monitor, a pool's manager) or torch is loaded (its
+    OpenMP pool): then spawn."""
+    import threading
+    render = sys.modules.get("tracker.runtime.render")
+    if ("fork" not in mp.get_all_start_methods() or threading.active_count() > 1 or "torch" in sys.modules
+            or (render is not None and render.contexts_made() > 0)):
+        return "spawn"
+    return "fork"
+
+
+def _start_pool(cfg: SynthConfig, pending: dict, workers: int, models: dict | None):
+    """A pool with every pending batch submitted (its workers are started here)."""
     import concurrent.futures as cf
-    ctx = mp.get_context("spawn")
-    pending = dict(enumerate(tasks))
+    method = start_method()
+    pool = cf.ProcessPoolExecutor(workers, mp_context=mp.get_context(method), initializer=_init_worker,
+                                  initargs=(asdict(cfg), models if method == "fork" else None))
+    return pool, {pool.submit(_render_batch, pending[k]): k for k in pending}
+
+
+def _pooled(cfg: SynthConfig, pending: dict, workers: int, bar, started=None, models: dict | None = None):
+    """The batches' records as they finish, rendered by ``workers`` processes
+    (``concurrent.futures``, which notices a worker that dies; ``started``: the first pool,
+    from :func:`_start_pool`). A batch whose worker died (a Mesa segfault, say) or hung is
+    rendered again by a fresh pool: images are drawn from their own seeds, so the new render
+    is the same image, and it overwrites any files the lost one left. :data:`RETRIES` pools in
+    a row that die without finishing a batch end the job with an error (a batch that kills
+    every renderer)."""
+    import concurrent.futures as cf
     fruitless = 0
     while pending:
-        pool = cf.ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker, initargs=(asdict(cfg),))
-        futures = {pool.submit(_render_batch, pending[k]): k for k in pending}
+        pool, futures = started or _start_pool(cfg, pending, workers, models)
+        started = None
         broken, finished_any = False, False
         try:
             while futures and not broken:
@@ -372,7 +401,7 @@ def _pooled(cfg: SynthConfig, tasks, workers: int, bar):
 
 def _stop(pool) -> None:
     """Shut a pool down now: queued batches cancelled, its workers killed (a hung one too)."""
-    procs = list(getattr(pool, "_processes", {}).values())  # (no public way to kill a hung worker)
+    procs = list((getattr(pool, "_processes", None) or {}).values())  # (no public way to kill a hung worker)
     pool.shutdown(wait=False, cancel_futures=True)
     for p in procs:
         if p.is_alive():
@@ -400,7 +429,7 @@ def shard_range(n_images: int, shard: tuple[int, int] | None) -> range:
     return range(k * n_images // n, (k + 1) * n_images // n)
 
 
-def generate(cfg: SynthConfig, out_dir, n_images: int, workers: int = 2, batch: int = 4,
+def generate(cfg: SynthConfig, out_dir, n_images: int, workers: int = 2, batch: int | None = None,
              progress: bool = True, command: str | None = None, shard: tuple[int, int] | None = None,
              seconds: float | None = None, min_images: int = 0) -> SynthReport:
     """Render images 0 .. ``n_images`` - 1 of the split ``cfg`` describes into ``out_dir``, or
@@ -443,17 +472,22 @@ def generate(cfg: SynthConfig, out_dir, n_images: int, workers: int = 2, batch: 
             "command": command or " ".join(sys.argv), "created": time.strftime("%Y-%m-%d %H:%M:%S")}
     write_json(out / "synth_config.json", meta)
 
+    if batch is None:  # up to 4 images a task, and at least 8 tasks per worker (no long wait for the last)
+        batch = max(1, min(4, len(mine) // (8 * max(1, workers))))
     tasks = [(list(mine[i:i + batch]), str(out)) for i in range(0, len(mine), batch)]
     writer = _ChunkWriter(out)
     done = n_inst = n_crops = 0
     interrupted = time_limited = False
     t0 = time.perf_counter()
+    pending = dict(enumerate(tasks))
+    # the workers start before the progress bar (its monitor thread would rule out forking)
+    started = _start_pool(cfg, pending, workers, models) if workers > 1 else None
     from tqdm import tqdm
     bar = tqdm(total=len(mine), unit="img", desc="synth" + (f" {shard[0]}/{shard[1]}" if shard else ""),
                disable=not progress)
     if workers <= 1:
-        _init_worker(asdict(cfg))
-    results = map(_render_batch, tasks) if workers <= 1 else _pooled(cfg, tasks, workers, bar)
+        _init_worker(asdict(cfg), models)
+    results = map(_render_batch, tasks) if workers <= 1 else _pooled(cfg, pending, workers, bar, started, models)
     try:
         last_flush = time.perf_counter()
         for recs in results:
@@ -474,6 +508,8 @@ def generate(cfg: SynthConfig, out_dir, n_images: int, workers: int = 2, batch: 
     finally:
         if hasattr(results, "close"):
             results.close()  # the pool's workers stopped (killed, on an interrupt) before the files are settled
+        if started is not None:
+            _stop(started[0])  # (an interrupt before the first batch came back left it running)
         bar.close()
         writer.flush()
         if workers <= 1:
