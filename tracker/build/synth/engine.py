@@ -207,7 +207,7 @@ def _table_background(bg, rng, cfg: SynthConfig, inst, n_on_table, table, light_
     objects standing on it."""
     R_w2c, t_w2c = table
     top, mask = table_surface(_W["bgs"].sample(rng, cfg.width, cfg.height), _W["K"], R_w2c, t_w2c, rng)
-    bg = np.where(mask[..., None], top, bg)
+    np.copyto(bg, top, where=mask[..., None])
     world = [((_W["shadow_verts"][i] @ R.T) + t - t_w2c) @ R_w2c for i, R, t in inst[:n_on_table]]
     return cast_shadows(bg, world, R_w2c.T @ np.asarray(light_dir_c, np.float64), _W["K"], R_w2c, t_w2c, rng)
 

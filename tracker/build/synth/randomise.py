@@ -132,7 +132,8 @@ def table_surface(texture: np.ndarray, K: np.ndarray, R_w2c: np.ndarray, t_w2c: 
     img = cv2.remap(texture, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT_101)
     # light falls off across the table, as under a lamp
     shade = (1.0 + rng.uniform(-0.25, 0.25) * (u - w / 2) / w + rng.uniform(-0.25, 0.25) * (v - h / 2) / h)
-    img = np.clip(img * shade[..., None].astype(np.float32), 0, 255).astype(np.uint8)
+    shade = shade.astype(np.float32)
+    img = cv2.multiply(img, cv2.merge([shade] * img.shape[2]), dtype=cv2.CV_8U)  # (rounded, saturated)
     return img, mask
 
 
@@ -339,10 +340,20 @@ def jitter_colours(rgb: np.ndarray, mask: np.ndarray, box, rng: np.random.Genera
 
 
 def composite(background: np.ndarray, render: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """Render over background with a one-pixel feathered edge (stands in for anti-aliasing)."""
-    a = cv2.GaussianBlur(mask.astype(np.float32), (3, 3), 0.6)[..., None]
-    a = np.maximum(a, mask[..., None])  # keep the object's own pixels opaque
-    return (render * a + background * (1 - a)).astype(np.uint8)
+    """Render over background with a one-pixel feathered edge (stands in for anti-aliasing).
+    Only the mask's box (and the blur's reach around it) is blended: elsewhere the result is
+    the background."""
+    out = background.copy()
+    x, y, w, h = cv2.boundingRect(np.ascontiguousarray(mask, dtype=bool).view(np.uint8))
+    if w == 0:
+        return out
+    H, W = mask.shape
+    ys, xs = slice(max(0, y - 2), min(H, y + h + 2)), slice(max(0, x - 2), min(W, x + w + 2))
+    m = mask[ys, xs]
+    a = cv2.GaussianBlur(m.astype(np.float32), (3, 3), 0.6)[..., None]
+    a = np.maximum(a, m[..., None])  # keep the object's own pixels opaque
+    out[ys, xs] = (render[ys, xs] * a + background[ys, xs] * (1 - a)).astype(np.uint8)
+    return out
 
 
 def camera_effects(img: np.ndarray, rng: np.random.Generator) -> np.ndarray:
