@@ -331,8 +331,8 @@ STALL_S = 600.0  # no batch finished for this long: the workers are taken as hun
 def start_method() -> str:
     """How ``synth`` starts its workers: 'fork' where that is safe, 'spawn' otherwise.
 
-    A forked worker starts in ~0.1 s with the parent's modules and meshes; a spawned one
-    imports and loads them again (~1 s each here). Forking is unsafe after this process made
+    A forked worker starts with the parent's modules and meshes; a spawned one starts an
+    interpreter, imports and loads them again (~0.6 s more each here). Forking is unsafe after this process made
     a GL context (Mesa's state is not fork-safe: the child hangs), once another thread runs
     (its locks are copied mid-use; tqdm's monitor, a pool's manager) or torch is loaded (its
     OpenMP pool): then spawn."""
