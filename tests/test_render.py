@@ -70,3 +70,28 @@ def test_a_colour_factor_tints_an_object_and_the_default_comes_back():
     w, y = white[on].mean(0), yellow[on].mean(0)
     assert abs(w[0] - w[2]) < 10 and y[0] > y[2] + 100 and y[1] > y[2] + 100
     assert np.array_equal(again, white)
+
+
+def test_every_one_of_the_max_lights_shines():
+    """The shader's light arrays are sized for MAX_LIGHTS directional lights (and one slot for
+    the kinds we never use): each of four lights from four sides lights its own side."""
+    import trimesh
+    from tracker.runtime.render import MAX_LIGHTS
+    ball = trimesh.creation.icosphere(subdivisions=4, radius=50.0)
+    ball.visual.vertex_colors = np.tile([160, 160, 160, 255], (len(ball.vertices), 1))
+    K = np.array([[500.0, 0, 64], [0, 500.0, 64], [0, 0, 1]])
+    pose = [(1, np.eye(3), np.array([0.0, 0.0, 600.0]))]
+    sides = [(1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.0, -1.0)]  # light travels towards -side
+    assert MAX_LIGHTS == len(sides)
+    spots = [(64 - 35 * x, 64 - 35 * y) for x, y in sides]  # the ball's lit side for each light: (u, v)
+    with Renderer(128, 128, {1: ball}, ambient=0.0) as r:
+        lights = [((x, y, 0.3), (1.0, 1.0, 1.0), 3.0) for x, y in sides]
+        before = None
+        for k in range(len(sides)):
+            r.set_lights(lights[:k + 1])
+            img, _ = r.render(K, pose)
+            lit = [int(img[int(v), int(u)].mean()) for u, v in spots]
+            if before is not None:  # the k-th light brightens its own side
+                assert lit[k] > before[k] + 40, (k, before, lit)
+            before = lit
+        assert min(before) > 100  # all four on: every side lit

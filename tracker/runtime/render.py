@@ -34,10 +34,17 @@ def _pyrender():
     except Exception as e:  # missing EGL / GL libraries surface here
         raise UserError(f"cannot start the offscreen renderer ({e.__class__.__name__}: {e}); "
                         f"it needs EGL (Mesa) with PYOPENGL_PLATFORM=egl") from None
-    if not getattr(prr, "_autopose_msaa", False):
+    if not getattr(prr, "_autopose_patched", False):
         prr.glRenderbufferStorageMultisample = (
             lambda target, samples, fmt, w, h: GL.glRenderbufferStorageMultisample(target, MSAA_SAMPLES, fmt, w, h))
-        prr._autopose_msaa = True
+        # pyrender sizes its shader's light arrays for 4 lights of each kind; llvmpipe pays for
+        # the spot and point light loops even when they run 0 times. Our renderers use only
+        # directional lights (at most MAX_LIGHTS), so the others get one slot each: the same
+        # images, the 640x480 scene render ~40 % faster on this CPU.
+        compute = prr.Renderer._compute_max_n_lights
+        prr.Renderer._compute_max_n_lights = (
+            lambda self, flags: [min(n, cap) for n, cap in zip(compute(self, flags), (MAX_LIGHTS, 1, 1))])
+        prr._autopose_patched = True
     return pyrender
 
 
