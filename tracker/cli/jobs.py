@@ -454,7 +454,7 @@ def add_commands(sub, REPO) -> None:
     s.add_argument("--depth", action="store_true", help="also write depth images (depth/, for VSD)")
     s.add_argument("--mesh-faces", type=nonnegative_int, default=None, metavar="N",
                    help="render the objects decimated to about N faces: the CPU rasteriser's cost grows with "
-                        "triangles (0: the full meshes; default: 4000, SynthConfig.mesh_faces)")
+                        "triangles, e.g. 4000 (default, or 0: the full meshes)")
     s.add_argument("--preview", help="PNG montage of samples, boxes, visible fractions and crops")
     s.set_defaults(func=cmd_synth)
 
