@@ -453,8 +453,8 @@ def add_commands(sub, REPO) -> None:
                         "same images as one run")
     s.add_argument("--depth", action="store_true", help="also write depth images (depth/, for VSD)")
     s.add_argument("--mesh-faces", type=nonnegative_int, default=None, metavar="N",
-                   help="render the objects decimated to about N faces: the CPU rasteriser's cost grows with "
-                        "triangles, e.g. 4000 (default, or 0: the full meshes)")
+                   help="render the objects decimated to about N faces, e.g. 4000: the CPU rasteriser's cost "
+                        "grows with triangles (default, or 0: the full meshes; docs/experiments/stop-46.md)")
     s.add_argument("--preview", help="PNG montage of samples, boxes, visible fractions and crops")
     s.set_defaults(func=cmd_synth)
 
