@@ -205,7 +205,7 @@ def cmd_synth(args) -> int:
         raise UserError(f"--preview {args.preview}: name a .png or .jpg file")  # before the rendering, not after
     cfg = SynthConfig(models_dir=str(args.models), backgrounds_dir=str(args.backgrounds or shared_data() / "backgrounds"),
                       seed=args.seed, prior=args.prior, obj_ids=obj_ids, depth=args.depth,
-                      mesh_faces=SynthConfig.mesh_faces if args.mesh_faces is None else (args.mesh_faces or None),
+                      mesh_faces=args.mesh_faces or None,
                       p_table=args.p_table, p_gloss=args.gloss, distractors=args.distractors,
                       lighting=args.lighting, repeat_objects=args.repeat_objects)
     rep = generate(cfg, args.out, args.images, workers=args.workers, command="app.py " + " ".join(sys.argv[1:]),

@@ -142,14 +142,19 @@ def genus(mesh) -> int | None:
     return int(round((2 * n_comp - m.euler_number) / 2))
 
 
-def diameter(vertices: np.ndarray) -> float:
-    """Largest distance between two vertices (over the convex hull's vertices)."""
+def hull_vertices(vertices: np.ndarray) -> np.ndarray:
+    """The vertices on the convex hull (all of them for a degenerate, flat model): the same
+    extremes of any linear or linear-fractional function (a projection) as all vertices."""
     v = np.asarray(vertices, dtype=np.float64)
     try:
-        v = v[ConvexHull(v).vertices]
+        return v[ConvexHull(v).vertices]
     except Exception:  # degenerate (flat) models: all vertices
-        pass
-    return float(pdist(v).max())
+        return v
+
+
+def diameter(vertices: np.ndarray) -> float:
+    """Largest distance between two vertices (over the convex hull's vertices)."""
+    return float(pdist(hull_vertices(vertices)).max())
 
 
 def _kabsch(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -126,7 +126,7 @@ def _init_worker(cfg_dict: dict, models: dict | None = None):
     import warnings
     warnings.simplefilter("ignore")  # a colourless mesh warns once in the parent, not per worker
     cv2.setNumThreads(1)
-    from tracker.core.meshes import diameter, load_models
+    from tracker.core.meshes import diameter, hull_vertices, load_models
     from tracker.runtime.render import Renderer
     cfg = SynthConfig(**cfg_dict)
     if models is None:
@@ -149,7 +149,7 @@ def _init_worker(cfg_dict: dict, models: dict | None = None):
     # the hull's vertices give the same extremes as all of them (a resting height, a projected
     # box: a linear or linear-fractional function's extreme over a convex body is at a vertex)
     # at a fraction of the points (the full driller: 12,655; its hull: ~1,000)
-    hull = {k: _hull_vertices(v) for k, v in verts.items()}
+    hull = {k: hull_vertices(v) for k, v in verts.items()}
     _W.update(
         cfg=cfg,
         K=np.asarray(cfg.K, dtype=np.float64),
@@ -164,14 +164,6 @@ def _init_worker(cfg_dict: dict, models: dict | None = None):
         bgs=bgs,
         palette=target_palette([models[k].mesh for k in sorted(models)], np.random.default_rng([cfg.seed, 9])),
     )
-
-
-def _hull_vertices(v: np.ndarray) -> np.ndarray:
-    from scipy.spatial import ConvexHull
-    try:
-        return v[ConvexHull(v).vertices]
-    except Exception:  # degenerate (flat) meshes: all vertices
-        return v
 
 
 def _sample_instances(rng, cfg: SynthConfig):

@@ -12,6 +12,7 @@ import trimesh
 
 from tracker.core.errors import UserError
 from tracker.core.geometry import project
+from tracker.core.visibility import mask_box
 from tracker.runtime.render import srgb_to_linear
 
 BG_EXTS = (".jpg", ".jpeg", ".png")
@@ -344,8 +345,8 @@ def composite(background: np.ndarray, render: np.ndarray, mask: np.ndarray) -> n
     Only the mask's box (and the blur's reach around it) is blended: elsewhere the result is
     the background."""
     out = background.copy()
-    x, y, w, h = cv2.boundingRect(np.ascontiguousarray(mask, dtype=bool).view(np.uint8))
-    if w == 0:
+    x, y, w, h = mask_box(mask)
+    if w <= 0:
         return out
     H, W = mask.shape
     ys, xs = slice(max(0, y - 2), min(H, y + h + 2)), slice(max(0, x - 2), min(W, x + w + 2))
