@@ -562,6 +562,13 @@ def test_join_heads_averages_refitted_heads_and_refuses_another_encoder(tiny_bun
         refit_heads(tmp_path / "joined", split, out_dir=tmp_path / "kept", keep_regressors=True, log=lambda *a: None)
 
 
+def _failure(stderr: str) -> str:
+    """What a failed torchrun job said: its processes' own errors (an abort's message comes
+    before the launcher's long report) and the end."""
+    own = [ln for ln in stderr.splitlines() if any(w in ln for w in ("terminate", "what()", "Error", "error:"))]
+    return "\n".join(own[:20]) + "\n...\n" + stderr[-1500:]
+
+
 def test_training_runs_under_torchrun_with_two_processes(tiny_bundle, tmp_path):
     """DistributedDataParallel with gloo on this CPU: two processes train the autoencoder
     together; the first writes the bundle, which records both."""
@@ -576,7 +583,7 @@ def test_training_runs_under_torchrun_with_two_processes(tiny_bundle, tmp_path):
                         "--minutes", "0.05", "--reg-epochs", "1", "--batch", "8",
                         "--models-info", str(REPO / "models" / "lmo_models_info.json"), "--device", "cpu"],
                        capture_output=True, text=True, timeout=600, env=env, cwd=REPO)
-    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.returncode == 0, _failure(r.stderr)
     from tracker.core.bundle import open_bundle
     m = open_bundle(out).manifest
     assert m.training["processes"] == 2 and m.training["ae_epochs"] >= 1
@@ -599,7 +606,7 @@ def test_the_detector_trains_under_torchrun_with_two_processes(tiny_bundle, tmp_
                         "train-detector", "--data", str(tiny_bundle.parent / "split"), "--model", str(root),
                         "--minutes", "0.05", "--batch", "2", "--width", "8", "--input", "128", "96", "--device", "cpu"],
                        capture_output=True, text=True, timeout=600, env=env, cwd=REPO)
-    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.returncode == 0, _failure(r.stderr)
     from tracker.core.bundle import open_bundle
     from tracker.runtime.detector import Detector
     b = open_bundle(root)

@@ -62,7 +62,11 @@ def first_then_rest(make):
 
 
 def finish() -> None:
-    """Leave the process group (at the end of a distributed run)."""
+    """Leave the process group (at the end of a distributed run), all processes together. The
+    first saves a checkpoint before it gets here; a process that left while its peer was still
+    busy was the likely cause of a SIGABRT of the second process in CI (gloo's transport
+    thread; its message was lost, and 24 runs here did not repeat it)."""
     import torch.distributed as dist
     if dist.is_available() and dist.is_initialized():
+        dist.barrier()
         dist.destroy_process_group()
