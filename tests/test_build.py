@@ -37,6 +37,28 @@ def test_the_budget_is_split_by_the_documented_rule():
     assert sum(bb.SHARES.values()) == pytest.approx(1.0)
 
 
+def test_the_encoder_stage_reserves_time_for_its_crops_and_heads():
+    """train_bundle inside build: the autoencoder gets what is left of the stage after the
+    crops, the regressors and the work after training (the stage ran 4.6 min over before)."""
+    from tracker.build import train as tr
+    assert tr.training_minutes(100.0, 25.0, 1.0, 1000, 0.8, False) == 25.0  # room to spare: as asked
+    n = 45_616
+    got = tr.training_minutes(27.6, 25.2, 1.13, n, 0.8, False)
+    after = 3 * 0.8 + n * (tr.CUT_S_PER_CROP + tr.AFTER_S_PER_CROP) / 60
+    assert got == pytest.approx(27.6 - 1.13 - after) and got < 25.2
+    assert tr.training_minutes(27.6, 25.2, 1.13, n, 0.8, True) > got  # the exact crops already cut: less to reserve
+    assert tr.training_minutes(5.0, 25.0, 1.0, n, 0.8, False) == tr.MIN_TRAIN_MINUTES  # never nothing
+    assert tr.training_minutes(5.0, 0.01, 1.0, n, 0.8, False) == 0.01  # never more than asked
+
+
+def test_recipes_recorded_before_decimated_renders_keep_the_full_meshes():
+    """A manifest's recipe from before synth decimated by default redoes the full meshes."""
+    old = {"models": "m", "minutes": 60.0, "seed": 3}
+    assert bb.Recipe.from_dict(old).mesh_faces == 0
+    assert bb.Recipe.from_dict({**old, "mesh_faces": 4000}).mesh_faces == 4000
+    assert bb.Recipe(models="m").mesh_faces == 4000
+
+
 def test_build_makes_a_bundle_resumes_and_records_its_recipe(small, tmp_path, monkeypatch):
     src = _meshes(tmp_path)
     out = tmp_path / "models" / "mine"

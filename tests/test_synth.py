@@ -69,6 +69,20 @@ def test_annotations_agree_with_an_independent_projection(small_split, lmo_model
     assert checked >= 10
 
 
+def test_synth_decimates_by_default_and_renders_the_full_meshes_on_request(tmp_path, data_dir):
+    """The CLI's default renders meshes decimated to 4,000 faces (recorded in the split);
+    --mesh-faces 0 renders the full meshes, which differ from the decimated ones' pixels."""
+    from tracker.cli.main import main
+    models = str(data_dir / "lmo" / "models")
+    for name, extra in (("dec", []), ("full", ["--mesh-faces", "0"])):
+        assert main(["synth", "--models", models, "--out", str(tmp_path / name), "--images", "1", "--obj-ids", "8",
+                     "--seed", "3", "--workers", "1", *extra]) == 0
+    cfg = {n: json.loads((tmp_path / n / "synth_config.json").read_text())["config"] for n in ("dec", "full")}
+    assert cfg["dec"]["mesh_faces"] == 4000 and cfg["full"]["mesh_faces"] is None
+    a, b = (cv2.imread(str(tmp_path / n / "000000" / "clean" / "000000_000000.png")) for n in ("dec", "full"))
+    assert (a > 0).any() and not np.array_equal(a, b)
+
+
 def test_decimated_meshes_keep_the_annotations_within_tolerance(tmp_path, data_dir, lmo_models):
     """--mesh-faces renders decimated meshes: silhouettes stay close to the full mesh's."""
     rep = generate(_cfg(data_dir, seed=6, mesh_faces=1500), tmp_path, 3, workers=1, progress=False)

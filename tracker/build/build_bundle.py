@@ -17,8 +17,9 @@ Stages, run in order; everything they make lives in ``MODEL_DIR.work/`` except t
 
 The budget (:func:`plan`): ``--minutes`` is split as 20 % rendering (half per split: each
 renders for its share of the time, at least :data:`MIN_IMAGES` images, at most
-:data:`MAX_RATE` images per second of it), 46 % encoder (of which 4 points for the heads),
-32 % detector, 2 % held-out check and report (40 renders and two evaluations: seconds). Each stage is cached by a hash of its options
+:data:`MAX_RATE` images per second of it), 46 % encoder (of which 4 points for the heads; the
+autoencoder trains for what is left of the 46 % after cutting the crops, and before the heads and
+the rest: :func:`tracker.build.train.training_minutes`), 32 % detector, 2 % held-out check and report (40 renders and two evaluations: seconds). Each stage is cached by a hash of its options
 and of the stages it reads; a rerun of the same command skips finished stages, and
 ``train``/``train-detector`` resume from their checkpoints. Ctrl-C keeps what is done. The
 recipe (every option and seed, the package versions) goes into the manifest (``build``), so
@@ -63,11 +64,14 @@ class Recipe:
     detector_backbone: str = "plain"
     workers: int = 2
     device: str = "auto"
+    # the renders' meshes decimated to about this many faces (synth's default); 0: the full meshes
+    mesh_faces: int = 4000
     extra: dict = field(default_factory=dict)
 
     @classmethod
     def from_dict(cls, d: dict) -> "Recipe":
         known = {k: d[k] for k in cls.__dataclass_fields__ if k in d}
+        known.setdefault("mesh_faces", 0)  # recorded before stop 47: the full meshes, as they were built
         return cls(**known)
 
 
@@ -178,7 +182,7 @@ def build(recipe: Recipe, out_dir, log=print) -> dict:
         def run():
             shutil.rmtree(split, ignore_errors=True)  # a split left half-made by an interruption
             cfg = SynthConfig(models_dir=str(models_dir), backgrounds_dir=backgrounds, seed=seed, prior=recipe.prior,
-                              obj_ids=list(obj_ids), **opts)
+                              obj_ids=list(obj_ids), mesh_faces=recipe.mesh_faces or None, **opts)
             rep = generate(cfg, split, n, workers=recipe.workers, command=f"build stage {split.name}",
                            seconds=seconds, min_images=min(n, MIN_IMAGES))
             if rep.interrupted:
@@ -187,13 +191,15 @@ def build(recipe: Recipe, out_dir, log=print) -> dict:
         return run
 
     split_enc, split_det = root / "split_encoder", root / "split_detector"
+    # the full meshes as before (0) keep the keys that stages of older builds were cached under
+    faces = [recipe.mesh_faces] if recipe.mesh_faces else []
     k_render = _key("render", k_models, p["render_images"], p["render_seconds"], recipe.seed, recipe.prior, obj_ids,
-                    "repeat")
+                    "repeat", *faces)
     stage(2, "render", k_render, render(split_enc, p["render_images"], recipe.seed, p["render_seconds"],
                                         repeat_objects=True))
     det_opts = {"distractors": "hard", "lighting": "overhead", "repeat_objects": True}
     k_render_det = _key("render-det", k_models, p["render_det_images"], p["render_det_seconds"], recipe.seed,
-                        recipe.prior, obj_ids, det_opts)
+                        recipe.prior, obj_ids, det_opts, *faces)
     stage(3, "render-det", k_render_det, render(split_det, p["render_det_images"], recipe.seed + 1,
                                                 p["render_det_seconds"], **det_opts))
 
@@ -218,6 +224,7 @@ def build(recipe: Recipe, out_dir, log=print) -> dict:
                 (work_dir(out) / f).unlink(missing_ok=True)
         m = train_bundle(joined(), out, method=recipe.method, size=recipe.size, latent=recipe.latent,
                          minutes=p["encoder_minutes"], seed=recipe.seed, reg_minutes=p["reg_minutes"],
+                         stage_minutes=p["encoder_minutes"] + 3 * p["reg_minutes"],
                          models_info_path=models_dir / "models_info.json", log=log, encoder=recipe.encoder,
                          device=recipe.device, command=f"app.py build --models {recipe.models} --out {out}")
         v = m.validation_synthetic
@@ -240,7 +247,7 @@ def build(recipe: Recipe, out_dir, log=print) -> dict:
 
     # 6. held-out check on fresh renders
     split_check = root / "split_check"
-    k_check = _key("check", k_det, k_models, CHECK_IMAGES, recipe.seed)
+    k_check = _key("check", k_det, k_models, CHECK_IMAGES, recipe.seed, *faces)
 
     def do_check():
         from tracker.evaluation.evaluate import evaluate

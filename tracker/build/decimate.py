@@ -2,8 +2,9 @@
 the rerun 3D view. The CPU rasteriser's cost grows with the triangle count: 8 LM-O objects at
 320x240 took 71 ms with the full meshes (8-32 k faces each) and 17 ms at 1,500 faces.
 
-Decimation needs ``fast_simplification`` (the 'train' extra); the bundle stores the result,
-so tracking only reads PLY files."""
+``synth`` renders its objects decimated too (by default, at 4,000 faces). Decimation needs
+``fast_simplification`` (a runtime dependency since synth's default uses it); the bundle stores
+the overlay meshes, so tracking only reads PLY files."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -23,7 +24,8 @@ def decimate_mesh(mesh, faces: int):
     try:
         small = mesh.simplify_quadric_decimation(face_count=faces)
     except ImportError:
-        raise UserError("mesh decimation needs the extras: pip install -e '.[train]'") from None
+        raise UserError("mesh decimation needs fast_simplification: pip install -e . (or synth --mesh-faces 0 "
+                        "for the full meshes)") from None
     colours = getattr(mesh.visual, "vertex_colors", None)
     if colours is not None and len(colours) == len(mesh.vertices):
         _, j = cKDTree(np.asarray(mesh.vertices)).query(np.asarray(small.vertices))

@@ -198,14 +198,14 @@ def cmd_score(args) -> int:
 
 def cmd_synth(args) -> int:
     from tracker.core.paths import shared_data
-    from tracker.build.synth.engine import SynthConfig, generate
+    from tracker.build.synth.engine import DEFAULT_MESH_FACES, SynthConfig, generate
     from tracker.build.synth.preview import preview
     obj_ids = args.obj_ids
     if args.preview and (Path(args.preview).is_dir() or Path(args.preview).suffix.lower() not in (".png", ".jpg", ".jpeg")):
         raise UserError(f"--preview {args.preview}: name a .png or .jpg file")  # before the rendering, not after
     cfg = SynthConfig(models_dir=str(args.models), backgrounds_dir=str(args.backgrounds or shared_data() / "backgrounds"),
                       seed=args.seed, prior=args.prior, obj_ids=obj_ids, depth=args.depth,
-                      mesh_faces=args.mesh_faces or None,
+                      mesh_faces=DEFAULT_MESH_FACES if args.mesh_faces is None else (args.mesh_faces or None),
                       p_table=args.p_table, p_gloss=args.gloss, distractors=args.distractors,
                       lighting=args.lighting, repeat_objects=args.repeat_objects)
     rep = generate(cfg, args.out, args.images, workers=args.workers, command="app.py " + " ".join(sys.argv[1:]),
@@ -243,7 +243,8 @@ def cmd_build(args) -> int:
             raise UserError("build needs --models DIR (a folder of meshes) or --from-manifest BUNDLE")
         recipe = Recipe(models=str(args.models), minutes=args.minutes, objects=args.objects, prior=args.prior,
                         units=args.units, seed=args.seed, encoder=args.encoder, size=args.size,
-                        detector_backbone=args.detector_backbone, workers=args.workers, device=args.device)
+                        detector_backbone=args.detector_backbone, workers=args.workers, device=args.device,
+                        mesh_faces=args.mesh_faces)
     s = build(recipe, args.out, log=lambda m: print(m, file=sys.stderr))
     det = s["stages"].get("check", {}).get("detector", {})
     print(f"built {args.out} in {s['minutes']} min this run (budget {s['budget_minutes']:g}): on held-out renders "
@@ -453,8 +454,8 @@ def add_commands(sub, REPO) -> None:
                         "same images as one run")
     s.add_argument("--depth", action="store_true", help="also write depth images (depth/, for VSD)")
     s.add_argument("--mesh-faces", type=nonnegative_int, default=None, metavar="N",
-                   help="render the objects decimated to about N faces, e.g. 4000: the CPU rasteriser's cost "
-                        "grows with triangles (default, or 0: the full meshes; docs/experiments/stop-46.md)")
+                   help="render the objects decimated to about N faces: the CPU rasteriser's cost grows with "
+                        "triangles (default 4000; 0: the full meshes; docs/experiments/stop-47.md)")
     s.add_argument("--preview", help="PNG montage of samples, boxes, visible fractions and crops")
     s.set_defaults(func=cmd_synth)
 
@@ -560,6 +561,8 @@ def add_commands(sub, REPO) -> None:
     s.add_argument("--size", type=positive_int, default=64, help="crop side in pixels")
     s.add_argument("--detector-backbone", choices=["plain", "lite0", "lite1", "lite2"], default="plain")
     s.add_argument("--workers", type=positive_int, default=2, help="render processes")
+    s.add_argument("--mesh-faces", type=nonnegative_int, default=4000, metavar="N",
+                   help="render the objects decimated to about N faces (default 4000; 0: the full meshes)")
     s.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto",
                    help="where the networks train: a CUDA GPU where torch sees one (auto), or the CPU")
     s.add_argument("--from-manifest", metavar="BUNDLE", help="redo the recipe a built bundle records (its options)")

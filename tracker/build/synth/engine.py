@@ -50,6 +50,8 @@ LIGHTING_STYLES = ("camera", "overhead")
 PHOTO_DISTRACTORS = ("hard", "household")  # textured from the photos, tinted, 2-8 per image
 SHADOW_POINTS = 400  # about this many of an object's vertices outline its shadow (randomise.cast_shadows)
 
+DEFAULT_MESH_FACES = 4000  # SynthConfig.mesh_faces
+
 
 @dataclass
 class SynthConfig:
@@ -87,11 +89,11 @@ class SynthConfig:
     jpeg_quality: tuple = (70, 95)
     obj_ids: list | None = None
     # render the objects with their meshes decimated to about this many faces (the CPU
-    # rasteriser's cost grows with triangles); None: the full meshes. LM-O's 8 at 4,000 (from
-    # 12-46 k): 150 against 250 ms per image, masks' IoU with the full meshes' 0.998, clean
-    # targets 2.1 / 255 apart; 2,000-3,000 were no faster. Not the default: the two-object
-    # build with it missed its rule by 0.001 (docs/experiments/stop-46.md)
-    mesh_faces: int | None = None
+    # rasteriser's cost grows with triangles); None or 0: the full meshes. LM-O's 8 at 4,000
+    # (from 12-46 k): 113 against 193 ms per image, masks' IoU with the full meshes' 0.998, clean
+    # targets 2.1 / 255 apart; 2,000-3,000 were no faster. A bundle trained on full-mesh renders
+    # scores the same on both renders of one split (docs/experiments/stop-47.md)
+    mesh_faces: int | None = DEFAULT_MESH_FACES
     depth: bool = False  # write depth/NNNNNN.png (uint16, DEPTH_SCALE mm per unit), as BOP scenes have
 
 
