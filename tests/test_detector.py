@@ -265,6 +265,19 @@ def tiny_detector_bundle(tiny_bundle, tmp_path_factory):
     return root
 
 
+def test_a_stage_budget_caps_the_detectors_training(tiny_bundle, tmp_path):
+    """build's detector stage: loading the images, validation and export come out of the same
+    budget, so the training itself gets less than ``minutes``."""
+    import time
+    from tracker.build.detector_train import AFTER_MINUTES, train_detector
+    root = tmp_path / "lmo"
+    shutil.copytree(tiny_bundle, root)
+    t = time.perf_counter()
+    d = train_detector(tiny_bundle.parent / "split", root, minutes=5.0, width=8, batch=2, log=lambda *a: None,
+                       stage_minutes=AFTER_MINUTES + 0.05)
+    assert d["training"]["minutes"] <= 0.1 and time.perf_counter() - t < 60  # not the 5 minutes asked
+
+
 def test_a_bundle_with_a_detector_can_train_another(tiny_detector_bundle, tiny_bundle, tmp_path):
     from tracker.core.bundle import open_bundle
     from tracker.build.detector_train import train_detector

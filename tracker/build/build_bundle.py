@@ -19,7 +19,8 @@ The budget (:func:`plan`): ``--minutes`` is split as 20 % rendering (half per sp
 renders for its share of the time, at least :data:`MIN_IMAGES` images, at most
 :data:`MAX_RATE` images per second of it), 46 % encoder (of which 4 points for the heads; the
 autoencoder trains for what is left of the 46 % after cutting the crops, and before the heads and
-the rest: :func:`tracker.build.train.training_minutes`), 32 % detector, 2 % held-out check and report (40 renders and two evaluations: seconds). Each stage is cached by a hash of its options
+the rest: :func:`tracker.build.train.training_minutes`), 32 % detector (its loading, validation and
+export included), 2 % held-out check and report (40 renders and two evaluations: seconds). Each stage is cached by a hash of its options
 and of the stages it reads; a rerun of the same command skips finished stages, and
 ``train``/``train-detector`` resume from their checkpoints. Ctrl-C keeps what is done. The
 recipe (every option and seed, the package versions) goes into the manifest (``build``), so
@@ -238,6 +239,7 @@ def build(recipe: Recipe, out_dir, log=print) -> dict:
         from tracker.build.detector_train import train_detector
         n = int(state.d["render"]["images"]) + int(state.d["render-det"]["images"])  # a tiny budget: < a batch
         d = train_detector(joined(), out, minutes=p["detector_minutes"], seed=recipe.seed, occlusion=0.5,
+                           stage_minutes=p["detector_minutes"],
                            batch=min(32, max(2, n // 2)),
                            backbone=recipe.detector_backbone, device=recipe.device, log=log,
                            command=f"app.py build --models {recipe.models} --out {out}")

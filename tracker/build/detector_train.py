@@ -437,14 +437,22 @@ def _recipe_options(old: dict, new: dict) -> str:
     return ", ".join(out)
 
 
+# validation on the held-out renders and the ONNX export, at the end of a run (a two-object
+# build's 433 validation images: well under this; build's detector stage ran 1.3 min over its
+# share, loading the images and these, before stage_minutes)
+AFTER_MINUTES = 0.5
+
+
 def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32, input_w: int = 320,
                    input_h: int = 240, batch: int = 32, lr: float = 2e-3, seed: int = 0, max_images=None,
                    val_parts: int = 20, threads: int = 2, init_from=None, occlusion: float = 0.0,
                    paste_objects: float = 0.0, cutouts=None, cutout_share: float | None = None, log=print,
                    command: str | None = None, precision: str = "auto", box_kind: str = "visible",
                    colour: str = "standard", ema: float = 0.0, backbone: str = "plain",
-                   pretrained: bool = True, device: str = "cpu") -> dict:
-    """``backbone``: ``plain`` (:class:`CenterNetLite` from random weights) or an
+                   pretrained: bool = True, device: str = "cpu", stage_minutes: float | None = None) -> dict:
+    """``stage_minutes``: the whole call's budget (``build``): training gets ``minutes`` or what
+    is left of it after loading the images, less :data:`AFTER_MINUTES` for validation and
+    export. ``backbone``: ``plain`` (:class:`CenterNetLite` from random weights) or an
     EfficientNet-Lite trunk (``lite0``..``lite2``, ImageNet weights unless ``pretrained`` is
     False; BatchNorm frozen; the spec's normalisation becomes the weights'). ``box_kind``: the targets are the objects' visible boxes, or their whole silhouettes'
     (``amodal``, clipped to the image: a box's size and centre then follow the object's
@@ -504,6 +512,8 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     # the first process cuts and caches the set, the others read it
     images, boxes = dd.first_then_rest(lambda: load_detection_set(data_dir, spec, cache, max_images, log))
     n = len(images)
+    if stage_minutes is not None:
+        minutes = min(minutes, max(0.05, stage_minutes - (time.perf_counter() - t0) / 60 - AFTER_MINUTES))
     tr, va = train_val_split(n, seed, parts=val_parts)
     if len(tr) < batch:
         raise UserError(f"{data_dir}: {len(tr)} training images, fewer than a batch of {batch}; "
