@@ -102,3 +102,32 @@ def test_the_parsed_mesh_cache_gives_the_parsed_mesh_and_survives_a_broken_cache
         edited = load_mesh(src)
     assert np.allclose(edited.mesh.vertices, 2.0 * np.asarray(first.mesh.vertices), atol=1e-3)
     assert not edited.has_colours and len(list(cache.glob("mesh_*.npz"))) == 2
+
+
+def test_cached_decimation_renders_the_same_pixels_and_survives_a_broken_cache(tmp_path, monkeypatch, lmo_models):
+    """synth's decimated meshes come from a cache after the first run: the same arrays and the
+    same rendered pixels as a fresh decimation; a damaged entry is decimated again; another
+    face count is another entry."""
+    from tracker.build import decimate as dec
+    from tracker.runtime.render import Renderer
+    monkeypatch.setenv("AUTOPOSE_CACHE", str(tmp_path / "cache"))
+    mesh = lmo_models[1].mesh
+    fresh = dec.decimate_mesh(mesh, 3000, cache=True)
+    (entry,) = (tmp_path / "cache").glob("decimated_*.npz")
+    monkeypatch.setattr(dec, "_decimate", lambda *a: pytest.fail("decimated again"))
+    cached = dec.decimate_mesh(mesh, 3000, cache=True)
+    for a, b in ((fresh.vertices, cached.vertices), (fresh.faces, cached.faces),
+                 (fresh.visual.vertex_colors, cached.visual.vertex_colors)):
+        assert np.array_equal(a, b)
+    K = np.array([[572.4, 0, 64.0], [0, 573.6, 64.0], [0, 0, 1]])
+    R, t = np.eye(3), np.array([0.0, 0.0, 600.0])
+    with Renderer(128, 128, {1: fresh}) as r1, Renderer(128, 128, {1: cached}) as r2:
+        (a, da), (b, db) = r1.render(K, [(1, R, t)]), r2.render(K, [(1, R, t)])
+    assert (da > 0).sum() > 500 and np.array_equal(a, b) and np.array_equal(da, db)
+    monkeypatch.undo()
+    monkeypatch.setenv("AUTOPOSE_CACHE", str(tmp_path / "cache"))
+    entry.write_bytes(b"not an npz")
+    again = dec.decimate_mesh(mesh, 3000, cache=True)
+    assert np.array_equal(again.vertices, fresh.vertices)
+    dec.decimate_mesh(mesh, 2000, cache=True)
+    assert len(list((tmp_path / "cache").glob("decimated_*.npz"))) == 2

@@ -7,6 +7,8 @@ the rerun 3D view. The CPU rasteriser's cost grows with the triangle count: 8 LM
 the overlay meshes, so tracking only reads PLY files."""
 from __future__ import annotations
 
+import hashlib
+import os
 from pathlib import Path
 
 import numpy as np
@@ -14,13 +16,29 @@ import numpy as np
 from tracker.core.errors import UserError
 
 
-def decimate_mesh(mesh, faces: int):
+def decimate_mesh(mesh, faces: int, cache: bool = False):
     """Quadric decimation to about ``faces`` triangles, vertex colours carried over from the
-    nearest original vertex."""
-    import trimesh
-    from scipy.spatial import cKDTree
+    nearest original vertex. ``cache``: keep the result in ``cache_dir()/decimated_<sha>.npz``,
+    keyed by the mesh's arrays, ``faces`` and fast_simplification's version (synth: every render
+    worker of every run decimates every object, 0.25 s for LM-O's 8; a cached result is read in
+    milliseconds). A missing, damaged or unwritable cache only costs the decimation."""
     if len(mesh.faces) <= faces:
         return mesh.copy()
+    path = _cache_path(mesh, faces) if cache else None
+    if path is not None:
+        try:
+            return _read(path)
+        except Exception:  # no entry, or a damaged one (any error of a half-written zip): decimate
+            pass
+    small = _decimate(mesh, faces)
+    if path is not None:
+        _write(path, small)
+    return small
+
+
+def _decimate(mesh, faces: int):
+    import trimesh
+    from scipy.spatial import cKDTree
     try:
         small = mesh.simplify_quadric_decimation(face_count=faces)
     except ImportError:
@@ -31,6 +49,41 @@ def decimate_mesh(mesh, faces: int):
         _, j = cKDTree(np.asarray(mesh.vertices)).query(np.asarray(small.vertices))
         small.visual = trimesh.visual.ColorVisuals(small, vertex_colors=np.asarray(colours)[j])
     return small
+
+
+def _cache_path(mesh, faces: int) -> Path | None:
+    from importlib.metadata import PackageNotFoundError, version
+    from tracker.core.paths import cache_dir
+    try:
+        v = version("fast_simplification")
+    except PackageNotFoundError:
+        return None  # decimating says what to install
+    h = hashlib.sha256(f"{faces} {v}".encode())
+    for a in (mesh.vertices, mesh.faces, getattr(mesh.visual, "vertex_colors", np.zeros(0))):
+        h.update(np.ascontiguousarray(a).tobytes())
+    return cache_dir() / f"decimated_{h.hexdigest()[:24]}.npz"
+
+
+def _read(path: Path):
+    import trimesh
+    with np.load(path, allow_pickle=False) as z:
+        small = trimesh.Trimesh(z["vertices"], z["faces"], process=False)
+        if "colours" in z.files:
+            small.visual = trimesh.visual.ColorVisuals(small, vertex_colors=z["colours"])
+    return small
+
+
+def _write(path: Path, small) -> None:
+    arrays = {"vertices": np.asarray(small.vertices), "faces": np.asarray(small.faces)}
+    if getattr(small.visual, "kind", None) == "vertex":
+        arrays["colours"] = np.asarray(small.visual.vertex_colors)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp.npz")
+        np.savez(tmp, **arrays)
+        os.replace(tmp, path)  # atomic: parallel workers never read half a file
+    except OSError:
+        pass
 
 
 def add_overlay_meshes(bundle_dir, faces: int = 1500, log=print) -> dict[int, str]:

@@ -143,7 +143,7 @@ def _init_worker(cfg_dict: dict, models: dict | None = None):
     meshes = {k: m.mesh for k, m in models.items()}
     if cfg.mesh_faces:
         from tracker.build.decimate import decimate_mesh
-        meshes = {k: decimate_mesh(m, cfg.mesh_faces) for k, m in meshes.items()}
+        meshes = {k: decimate_mesh(m, cfg.mesh_faces, cache=True) for k, m in meshes.items()}
     targets = dict(meshes)
     meshes.update({DISTRACTOR_BASE + i: m for i, m in enumerate(dis)})
     verts = {**{k: np.asarray(m.vertices) for k, m in models.items()},
