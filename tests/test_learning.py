@@ -578,7 +578,7 @@ def test_training_runs_under_torchrun_with_two_processes(tiny_bundle, tmp_path):
     torchrun = Path(sys.executable).parent / "torchrun"
     out = tmp_path / "ddp"
     env = dict(os.environ, OMP_NUM_THREADS="1")
-    r = subprocess.run([str(torchrun), "--nproc_per_node", "2", "--master_port", "29517", str(REPO / "app.py"), "train",
+    r = subprocess.run([str(torchrun), "--standalone", "--nproc_per_node", "2", str(REPO / "app.py"), "train",
                         "--data", str(tiny_bundle.parent / "split"), "--out", str(out), "--size", "32", "--latent", "16",
                         "--minutes", "0.05", "--reg-epochs", "1", "--batch", "8",
                         "--models-info", str(REPO / "models" / "lmo_models_info.json"), "--device", "cpu"],
@@ -602,7 +602,7 @@ def test_the_detector_trains_under_torchrun_with_two_processes(tiny_bundle, tmp_
     root = tmp_path / "lmo"
     shutil.copytree(tiny_bundle, root)
     env = dict(os.environ, OMP_NUM_THREADS="1")
-    r = subprocess.run([str(torchrun), "--nproc_per_node", "2", "--master_port", "29518", str(REPO / "app.py"),
+    r = subprocess.run([str(torchrun), "--standalone", "--nproc_per_node", "2", str(REPO / "app.py"),
                         "train-detector", "--data", str(tiny_bundle.parent / "split"), "--model", str(root),
                         "--minutes", "0.05", "--batch", "2", "--width", "8", "--input", "128", "96", "--device", "cpu"],
                        capture_output=True, text=True, timeout=600, env=env, cwd=REPO)

@@ -541,3 +541,20 @@ def test_a_split_made_from_relative_folders_finds_its_meshes_from_anywhere(data_
     c = json.loads((tmp_path / "split" / "synth_config.json").read_text())["config"]
     assert Path(c["models_dir"]).is_absolute() and (Path(c["models_dir"]) / "obj_000001.ply").is_file()
     assert Path(c["backgrounds_dir"]).is_absolute() and Path(c["backgrounds_dir"]).is_dir()
+
+
+def test_without_the_decimation_library_synth_says_what_to_do(data_dir, tmp_path, monkeypatch):
+    """The default decimated meshes need fast_simplification: without it the job ends with the
+    one-line error naming the fix, from the parent before any worker starts (not a broken
+    pool retried three times), and renders nothing."""
+    import trimesh
+    from tracker.build import decimate as dec
+
+    def missing(*a, **k):
+        raise ImportError("No module named 'fast_simplification'")
+    monkeypatch.setenv("AUTOPOSE_CACHE", str(tmp_path / "cache"))  # nothing cached yet
+    monkeypatch.setattr(trimesh.Trimesh, "simplify_quadric_decimation", missing)
+    monkeypatch.setattr(dec, "_write", lambda *a: pytest.fail("nothing to cache"))
+    with pytest.raises(UserError, match="needs fast_simplification.*--mesh-faces 0"):
+        generate(_cfg(data_dir), tmp_path / "out", 4, workers=2, progress=False)
+    assert not list((tmp_path / "out").rglob("*.jpg"))

@@ -36,6 +36,7 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from tracker.build.decimate import SYNTH_FACES
 from tracker.core.errors import UserError
 
 SHARES = {"render": 0.10, "render-det": 0.10, "encoder": 0.42, "heads": 0.04, "detector": 0.32, "check": 0.02}
@@ -66,7 +67,7 @@ class Recipe:
     workers: int = 2
     device: str = "auto"
     # the renders' meshes decimated to about this many faces (synth's default); 0: the full meshes
-    mesh_faces: int = 4000
+    mesh_faces: int = SYNTH_FACES
     extra: dict = field(default_factory=dict)
 
     @classmethod

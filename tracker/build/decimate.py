@@ -15,6 +15,11 @@ import numpy as np
 
 from tracker.core.errors import UserError
 
+# synth's and build's default: the objects rendered at about this many faces (stop 47)
+SYNTH_FACES = 4000
+# part of the cache's key: raise it when _decimate's result changes (not only the library's version)
+CACHE_VERSION = 1
+
 
 def decimate_mesh(mesh, faces: int, cache: bool = False):
     """Quadric decimation to about ``faces`` triangles, vertex colours carried over from the
@@ -58,9 +63,11 @@ def _cache_path(mesh, faces: int) -> Path | None:
         v = version("fast_simplification")
     except PackageNotFoundError:
         return None  # decimating says what to install
-    h = hashlib.sha256(f"{faces} {v}".encode())
+    h = hashlib.sha256(f"{CACHE_VERSION} {faces} {v}".encode())
     for a in (mesh.vertices, mesh.faces, getattr(mesh.visual, "vertex_colors", np.zeros(0))):
-        h.update(np.ascontiguousarray(a).tobytes())
+        a = np.ascontiguousarray(a)
+        h.update(f"{a.dtype.str} {a.shape}".encode())
+        h.update(a.tobytes())
     return cache_dir() / f"decimated_{h.hexdigest()[:24]}.npz"
 
 
@@ -77,13 +84,13 @@ def _write(path: Path, small) -> None:
     arrays = {"vertices": np.asarray(small.vertices), "faces": np.asarray(small.faces)}
     if getattr(small.visual, "kind", None) == "vertex":
         arrays["colours"] = np.asarray(small.visual.vertex_colors)
+    tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp.npz")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp.npz")
         np.savez(tmp, **arrays)
         os.replace(tmp, path)  # atomic: parallel workers never read half a file
     except OSError:
-        pass
+        tmp.unlink(missing_ok=True)
 
 
 def add_overlay_meshes(bundle_dir, faces: int = 1500, log=print) -> dict[int, str]:

@@ -8,6 +8,7 @@ from pathlib import Path
 
 from tracker.cli.args import (add_precision, add_regressor_budget, finite_float, fraction, id_list, nonnegative_float,
                               nonnegative_int, positive_float, positive_int, shard_spec)
+from tracker.build.decimate import SYNTH_FACES
 from tracker.core.errors import UserError
 from tracker.runtime.confidence import UNCERTAIN_BELOW
 
@@ -455,7 +456,7 @@ def add_commands(sub, REPO) -> None:
     s.add_argument("--depth", action="store_true", help="also write depth images (depth/, for VSD)")
     s.add_argument("--mesh-faces", type=nonnegative_int, default=None, metavar="N",
                    help="render the objects decimated to about N faces: the CPU rasteriser's cost grows with "
-                        "triangles (default 4000; 0: the full meshes; docs/experiments/stop-47.md)")
+                        f"triangles (default {SYNTH_FACES}; 0: the full meshes; docs/experiments/stop-47.md)")
     s.add_argument("--preview", help="PNG montage of samples, boxes, visible fractions and crops")
     s.set_defaults(func=cmd_synth)
 
@@ -561,8 +562,8 @@ def add_commands(sub, REPO) -> None:
     s.add_argument("--size", type=positive_int, default=64, help="crop side in pixels")
     s.add_argument("--detector-backbone", choices=["plain", "lite0", "lite1", "lite2"], default="plain")
     s.add_argument("--workers", type=positive_int, default=2, help="render processes")
-    s.add_argument("--mesh-faces", type=nonnegative_int, default=4000, metavar="N",
-                   help="render the objects decimated to about N faces (default 4000; 0: the full meshes)")
+    s.add_argument("--mesh-faces", type=nonnegative_int, default=SYNTH_FACES, metavar="N",
+                   help=f"render the objects decimated to about N faces (default {SYNTH_FACES}; 0: the full meshes)")
     s.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto",
                    help="where the networks train: a CUDA GPU where torch sees one (auto), or the CPU")
     s.add_argument("--from-manifest", metavar="BUNDLE", help="redo the recipe a built bundle records (its options)")

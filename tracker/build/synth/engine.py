@@ -29,6 +29,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from tracker.build.decimate import SYNTH_FACES
 from tracker.core.bop import write_json
 from tracker.core.camera import LMO_K
 from tracker.core.errors import UserError
@@ -50,7 +51,7 @@ LIGHTING_STYLES = ("camera", "overhead")
 PHOTO_DISTRACTORS = ("hard", "household")  # textured from the photos, tinted, 2-8 per image
 SHADOW_POINTS = 400  # about this many of an object's vertices outline its shadow (randomise.cast_shadows)
 
-DEFAULT_MESH_FACES = 4000  # SynthConfig.mesh_faces
+DEFAULT_MESH_FACES = SYNTH_FACES  # SynthConfig.mesh_faces
 
 
 @dataclass
@@ -450,6 +451,10 @@ def generate(cfg: SynthConfig, out_dir, n_images: int, workers: int = 2, batch: 
     list_backgrounds(cfg.backgrounds_dir)  # fail early, in the parent
     from tracker.core.meshes import load_models
     models = load_models(cfg.models_dir, cfg.obj_ids)  # fail early (and warn once) on bad meshes
+    if cfg.mesh_faces:  # here, once (a missing library is one error, not a broken pool); workers read the cache
+        from tracker.build.decimate import decimate_mesh
+        for m in models.values():
+            decimate_mesh(m.mesh, cfg.mesh_faces, cache=True)
     if cfg.obj_ids is None:
         cfg.obj_ids = sorted(models)
     # absolute, so that the split's synth_config.json still finds them from another working
