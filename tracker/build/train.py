@@ -254,6 +254,8 @@ def training_minutes(stage_minutes: float, minutes: float, spent_minutes: float,
     """The autoencoder's minutes when the whole of ``train_bundle`` must fit ``stage_minutes``:
     what is left after the time spent so far (cutting or loading the crops), the exact-box crops
     still to cut, the three regressors and the rest of the work after training."""
+    # the heads: their MLPs' 2 x reg_minutes (rotation 1, centre and distance 0.5 each), the
+    # distance KNN's choice and the distance-from-rotation trees (about one more)
     after = 3 * reg_minutes + n_crops * ((0.0 if exact_cached else CUT_S_PER_CROP) + AFTER_S_PER_CROP) / 60
     return min(minutes, max(MIN_TRAIN_MINUTES, stage_minutes - spent_minutes - after))
 
