@@ -8,7 +8,6 @@ the overlay meshes, so tracking only reads PLY files."""
 from __future__ import annotations
 
 import hashlib
-import os
 from pathlib import Path
 
 import numpy as np
@@ -72,25 +71,13 @@ def _cache_path(mesh, faces: int) -> Path | None:
 
 
 def _read(path: Path):
-    import trimesh
-    with np.load(path, allow_pickle=False) as z:
-        small = trimesh.Trimesh(z["vertices"], z["faces"], process=False)
-        if "colours" in z.files:
-            small.visual = trimesh.visual.ColorVisuals(small, vertex_colors=z["colours"])
-    return small
+    from tracker.core.meshes import read_cached_mesh
+    return read_cached_mesh(path)
 
 
 def _write(path: Path, small) -> None:
-    arrays = {"vertices": np.asarray(small.vertices), "faces": np.asarray(small.faces)}
-    if getattr(small.visual, "kind", None) == "vertex":
-        arrays["colours"] = np.asarray(small.visual.vertex_colors)
-    tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp.npz")
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        np.savez(tmp, **arrays)
-        os.replace(tmp, path)  # atomic: parallel workers never read half a file
-    except OSError:
-        tmp.unlink(missing_ok=True)
+    from tracker.core.meshes import write_cached_mesh
+    write_cached_mesh(path, small)
 
 
 def add_overlay_meshes(bundle_dir, faces: int = 1500, log=print) -> dict[int, str]:

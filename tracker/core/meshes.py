@@ -67,28 +67,38 @@ def _cached_read(path: Path) -> trimesh.Trimesh:
         raise UserError(f"{path}: unreadable mesh ({e.strerror})") from None
     cached = cache_dir() / f"mesh_{hashlib.sha256(data).hexdigest()[:24]}.npz"
     try:
-        with np.load(cached, allow_pickle=False) as z:
-            mesh = trimesh.Trimesh(z["vertices"], z["faces"], process=False)
-            if "colours" in z.files:
-                mesh.visual = trimesh.visual.ColorVisuals(mesh, vertex_colors=z["colours"])
-            return mesh
+        return read_cached_mesh(cached)
     except Exception:  # no entry, or a damaged one (any error of a half-written zip): parse
         pass
     mesh = read_mesh(path)
-    kind = getattr(mesh.visual, "kind", None)
-    if kind not in ("vertex", None):  # a texture or face colours: not what the cache holds
-        return mesh
-    arrays = {"vertices": np.asarray(mesh.vertices, np.float64), "faces": np.asarray(mesh.faces, np.int64)}
-    if kind == "vertex":
-        arrays["colours"] = np.asarray(mesh.visual.vertex_colors, np.uint8)
-    try:
-        cached.parent.mkdir(parents=True, exist_ok=True)
-        tmp = cached.with_name(f"{cached.stem}.{os.getpid()}.tmp.npz")
-        np.savez(tmp, **arrays)
-        os.replace(tmp, cached)  # atomic: parallel workers never read half a file
-    except OSError:
-        pass
+    if getattr(mesh.visual, "kind", None) in ("vertex", None):  # a texture or face colours: not cached
+        write_cached_mesh(cached, mesh)
     return mesh
+
+
+def read_cached_mesh(path: Path):
+    """A mesh (vertices, faces, vertex colours) from a cache entry :func:`write_cached_mesh`
+    wrote; raises on a missing or damaged entry."""
+    with np.load(path, allow_pickle=False) as z:
+        mesh = trimesh.Trimesh(z["vertices"], z["faces"], process=False)
+        if "colours" in z.files:
+            mesh.visual = trimesh.visual.ColorVisuals(mesh, vertex_colors=z["colours"])
+        return mesh
+
+
+def write_cached_mesh(path: Path, mesh) -> None:
+    """Store a mesh's vertices, faces and vertex colours as a cache entry, atomically (parallel
+    workers never read half a file); an unwritable cache is skipped."""
+    arrays = {"vertices": np.asarray(mesh.vertices, np.float64), "faces": np.asarray(mesh.faces, np.int64)}
+    if getattr(mesh.visual, "kind", None) == "vertex":
+        arrays["colours"] = np.asarray(mesh.visual.vertex_colors, np.uint8)
+    tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp.npz")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        np.savez(tmp, **arrays)
+        os.replace(tmp, path)
+    except OSError:
+        tmp.unlink(missing_ok=True)
 
 
 def load_mesh(path, obj_id: int | None = None) -> ObjectModel:
