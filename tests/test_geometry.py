@@ -77,6 +77,16 @@ def test_project_then_recover_translation(K, tx, ty, tz, q):
     assert np.allclose(G.translation_from_centre(centre, tz, K), t, rtol=1e-9, atol=1e-6)
 
 
+def test_translation_from_centre_takes_one_intrinsics_per_centre():
+    rng = np.random.default_rng(1)
+    Ks = np.stack([np.array([[f, 0, cx], [0, f * 1.01, cy], [0, 0, 1.0]])
+                   for f, cx, cy in zip(rng.uniform(300, 900, 5), rng.uniform(100, 400, 5), rng.uniform(100, 300, 5))])
+    centres, tz = rng.uniform(0, 640, (5, 2)), rng.uniform(300, 2000, 5)
+    each = np.stack([G.translation_from_centre(c, z, K) for c, z, K in zip(centres, tz, Ks)])
+    assert np.array_equal(G.translation_from_centre(centres, tz, Ks), each)
+    assert not np.allclose(G.translation_from_centre(centres, tz, Ks[0]), each)
+
+
 @given(K_strategy(), arrays(np.float64, 3, elements=st.floats(-200, 200)), st.floats(300, 2000),
        st.sampled_from([(320, 240), (1280, 960), (160, 120), (800, 600)]))
 def test_scaled_intrinsics_project_to_scaled_pixels(K, p, z, size):

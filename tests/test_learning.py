@@ -311,6 +311,11 @@ def test_distance_knn_equals_scikit_learns_brute_force():
     ref = KNeighborsRegressor(6, weights="distance", algorithm="brute").fit(
         m._prep(X).astype(np.float32), y.astype(np.float32)).predict(m._prep(Q).astype(np.float32))
     np.testing.assert_allclose(m.predict(Q), ref, atol=1e-5)
+    # several k from one neighbour search: each as a KNN fitted with that k predicts
+    many = m.predict_ks(Q, [1, 3, 6, 20])
+    for k in (1, 3, 6, 20):
+        np.testing.assert_allclose(many[k], DistanceKNN(k=k, box_weight=2.5).fit(X, y).predict(Q), atol=1e-12)
+    assert not np.allclose(many[1], many[20])
 
 
 def _distance_case(X, y):

@@ -133,13 +133,14 @@ def project(points: np.ndarray, K: np.ndarray, R: np.ndarray | None = None,
 def translation_from_centre(centre_px: np.ndarray, tz: np.ndarray, K: np.ndarray) -> np.ndarray:
     """Thesis Eq. 4.3: T_x = (x_c - c_x) T_z / f_x, T_y = (y_c - c_y) T_z / f_y.
 
-    ``centre_px`` (..., 2) is the projected object origin, ``tz`` (...) the depth in mm.
+    ``centre_px`` (..., 2) is the projected object origin, ``tz`` (...) the depth in mm, ``K``
+    one (3, 3) or one per centre (..., 3, 3).
     """
     K = np.asarray(K, dtype=np.float64)
     c = np.asarray(centre_px, dtype=np.float64)
     tz = np.asarray(tz, dtype=np.float64)
-    tx = (c[..., 0] - K[0, 2]) * tz / K[0, 0]
-    ty = (c[..., 1] - K[1, 2]) * tz / K[1, 1]
+    tx = (c[..., 0] - K[..., 0, 2]) * tz / K[..., 0, 0]
+    ty = (c[..., 1] - K[..., 1, 2]) * tz / K[..., 1, 1]
     return np.stack([tx, ty, tz], axis=-1)
 
 

@@ -142,18 +142,28 @@ class DistanceKNN:
         return Z
 
     def predict(self, X):
+        return self.predict_ks(X, [self.k])[self.k]
+
+    def predict_ks(self, X, ks) -> dict:
+        """:meth:`predict` for several ``k`` from one neighbour search (up to the largest):
+        ``{k: prediction}``, each as ``predict`` with that ``k`` gives it."""
         Z = self._prep(X).astype(np.float32)
-        k = min(self.k, len(self.X_))
-        out = np.empty((len(Z), self.y_.shape[1]), np.float64)
+        ks = {k: min(int(k), len(self.X_)) for k in ks}
+        k_max = max(ks.values())
+        out = {k: np.empty((len(Z), self.y_.shape[1]), np.float64) for k in ks}
         for a in range(0, len(Z), 256):
             z = Z[a:a + 256]
             d2 = np.maximum(self.sq_[None] - 2.0 * (z @ self.X_.T) + (z * z).sum(1)[:, None], 0.0)
-            j = np.argpartition(d2, k - 1, axis=1)[:, :k]
-            d = np.sqrt(np.take_along_axis(d2, j, 1).astype(np.float64))
-            exact = d < 1e-6
-            w = np.where(exact.any(1, keepdims=True), exact.astype(np.float64), 1.0 / np.maximum(d, 1e-12))
-            out[a:a + 256] = np.einsum("nk,nkd->nd", w, self.y_[j]) / w.sum(1, keepdims=True)
-        return out[:, 0] if self.y_.shape[1] == 1 else out
+            j = np.argpartition(d2, k_max - 1, axis=1)[:, :k_max]
+            d2j = np.take_along_axis(d2, j, 1)
+            order = np.argsort(d2j, axis=1, kind="stable")  # nearest first: the first k are the k nearest
+            j, d = np.take_along_axis(j, order, 1), np.sqrt(np.take_along_axis(d2j, order, 1).astype(np.float64))
+            for k, kk in ks.items():
+                dk = d[:, :kk]
+                exact = dk < 1e-6
+                w = np.where(exact.any(1, keepdims=True), exact.astype(np.float64), 1.0 / np.maximum(dk, 1e-12))
+                out[k][a:a + 256] = np.einsum("nk,nkd->nd", w, self.y_[j[:, :kk]]) / w.sum(1, keepdims=True)
+        return {k: (o[:, 0] if self.y_.shape[1] == 1 else o) for k, o in out.items()}
 
     def to_arrays(self) -> tuple[dict, dict]:
         return ({"kind": "knn", "k": int(self.k), "box_weight": float(self.box_weight), "n_box": int(self.n_box)},
@@ -404,11 +414,7 @@ class PoseHead:
         K = np.asarray(K, dtype=np.float64)
         if self.rotation_frame == "ray":
             R = ray_rotation(centre, K) @ R
-        if K.ndim == 2:
-            t = translation_from_centre(centre, tz, K)
-        else:
-            t = np.stack([translation_from_centre(c, z, k) for c, z, k in zip(centre, tz, K)])
-        return R, t
+        return R, translation_from_centre(centre, tz, K)
 
 
 class HeadEnsemble(PoseHead):
