@@ -56,3 +56,43 @@ def test_the_device_is_a_gpu_only_where_torch_sees_one(monkeypatch):
         resolve_device("tpu")
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     assert resolve_device("auto") == "cuda"
+
+
+def test_the_budget_schedule_anneals_over_the_time_budget():
+    from tracker.build.nets.schedule import FLOOR, budget_lr
+    assert budget_lr(1e-3, 0.0, 0) == pytest.approx(1e-3)
+    assert budget_lr(1e-3, 0.5, 10**4) == pytest.approx(1e-3 * (FLOOR + (1 - FLOOR) / 2))
+    assert budget_lr(1e-3, 1.0, 10**4) == budget_lr(1e-3, 7.0, 10**4) == pytest.approx(1e-3 * FLOOR)
+    assert budget_lr(2e-3, 0.0, 49, warmup=200) == pytest.approx(2e-3 / 4)  # the detector's warm-up
+    lrs = [budget_lr(1.0, f, 10**4) for f in np.linspace(0, 1, 11)]
+    assert all(a > b for a, b in zip(lrs, lrs[1:]))
+
+
+@pytest.mark.parametrize("schedule", ["budget", "plateau"])
+def test_a_budgeted_autoencoder_ends_its_training_annealed_or_not(tmp_path, schedule, monkeypatch):
+    import types
+
+    from tracker.build.nets import fit
+    ticks = iter(range(10**6))  # a clock of its own: 0.25 s a reading, whatever the machine's load
+    monkeypatch.setattr(fit, "time", types.SimpleNamespace(perf_counter=lambda: 0.25 * next(ticks)))
+    rng = np.random.default_rng(0)
+    x = np.broadcast_to((rng.random((48, 1, 1, 3)) * 255).astype(np.uint8), (48, 16, 16, 3)).copy()
+    c = onehot(rng.integers(0, 2, 48), 2)
+    model = AutoEncoder("cvam", 16, 8, 2, widths=(8, 16))
+    hist = train_autoencoder(model, x[:40], x[:40], c[:40], x[40:], x[40:], c[40:], tmp_path, minutes=0.1,
+                             batch=8, patience=1000, precision="fp32", log=lambda *a: None, lr_schedule=schedule)
+    assert hist["seconds"][-1] >= 0.1 * 60  # the time budget ended it, after several epochs
+    assert len(hist["epoch"]) >= 2
+    if schedule == "budget":  # the last step ran with 2-7 % of the step size
+        assert hist["lr"][-1] < 0.1e-3 and hist["lr"][0] > hist["lr"][-1]
+    else:  # no plateau of 3 epochs in a loss still falling: the step size stays
+        assert hist["lr"][0] == pytest.approx(1e-3)
+
+
+def test_an_unknown_schedule_is_refused(tmp_path):
+    from tracker.core.errors import UserError
+    model = AutoEncoder("cvam", 16, 8, 2, widths=(8, 16))
+    x = np.zeros((4, 16, 16, 3), np.uint8)
+    with pytest.raises(UserError, match="unknown step-size schedule"):
+        train_autoencoder(model, x, x, onehot(np.zeros(4, int), 2), x, x, onehot(np.zeros(4, int), 2), tmp_path,
+                          minutes=0.01, lr_schedule="cosine", log=lambda *a: None)

@@ -27,6 +27,7 @@ from tracker.runtime.detector import BOX_KINDS, DetectorSpec, decode, letterbox,
 from tracker.core.errors import UserError
 from tracker.core.paths import work_dir
 from tracker.core.visibility import mask_box
+from tracker.build.nets.schedule import budget_lr
 
 MIN_VISIB = 0.1
 CUTOUT_MAX_SIDE = 160  # px a cut-out is kept at; pastes reach 40 % of the input width (128 px at 320)
@@ -589,10 +590,13 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
         if n_proc > 1:
             from torch.nn.parallel import DistributedDataParallel
             net = DistributedDataParallel(net, device_ids=[torch.cuda.current_device()] if device == "cuda" else None)
-        while not dd.any_rank(state["seconds"] >= budget):  # all processes stop at the same step
-            frac = state["seconds"] / budget
+        while True:
+            spent = dd.max_over_ranks(state["seconds"])  # one clock: the same step size and last step everywhere
+            if spent >= budget:
+                break
+            frac = spent / budget
             for gr in opt.param_groups:
-                gr["lr"] = lr * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * frac))) * min(1.0, (state["step"] + 1) / 200)
+                gr["lr"] = budget_lr(lr, frac, state["step"], warmup=200)
             b_rng = np.random.default_rng([seed, state["step"]])
             idx = b_rng.choice(tr, batch, replace=False)
             if n_proc > 1:  # this process's share of the batch, augmented from its own stream

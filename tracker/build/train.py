@@ -271,7 +271,7 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
                  log=print, command: str | None = None, encoder: str = "plain", init_from=None,
                  precision: str = "auto", reg_epochs: int | None = None, lr: float = 1e-3, batch: int = 128,
                  pretrained: bool = True, device: str = "auto", kl_warmup: int = 0,
-                 stage_minutes: float | None = None) -> Manifest | None:
+                 stage_minutes: float | None = None, lr_schedule: str = "plateau") -> Manifest | None:
     """``stage_minutes``: the whole call's budget (``build``): the autoencoder trains for
     ``minutes`` or less, so that cutting both crop sets, the heads and the export fit in it too
     (:func:`training_minutes`). ``encoder``: plain | resnet | lite0 | lite1 | lite2 (an ImageNet-pretrained trunk; with
@@ -344,7 +344,7 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
         f"{n_obj} objects, budget {minutes:.0f} min, {precision} training passes")
     hist = train_autoencoder(model, cs.x[tr], cs.y[tr], c_all[tr], cs.x[va], cs.y[va], c_all[va], work,
                              minutes=minutes, seed=seed, init_from=init_from, precision=precision, log=log,
-                             lr=lr, batch=batch, device=device, kl_warmup=kl_warmup)
+                             lr=lr, batch=batch, device=device, kl_warmup=kl_warmup, lr_schedule=lr_schedule)
 
     if rank != 0:  # the heads, the codebook and the export are the first process's
         dd.finish()
@@ -409,7 +409,7 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
                       "ae_epochs": len(hist["epoch"]), "ae_best_val_l2": float(min(hist["val_l2"])),
                       "ae_minutes": round(hist["seconds"][-1] / 60, 1) if hist["seconds"] else 0.0,
                       "total_minutes": round((time.perf_counter() - t0) / 60, 1),
-                      "knn": dist_info["knn"], "seed": seed, "precision": precision, "device": device, "lr": lr, "batch": batch,
+                      "knn": dist_info["knn"], "seed": seed, "precision": precision, "device": device, "lr": lr, "lr_schedule": lr_schedule, "batch": batch,
                       # BatchNorm after every conv (folded into the exported convs), read off the network
                       "ae_norm": "batch" if any(isinstance(m, torch.nn.BatchNorm2d) for m in model.decoder.modules())
                       else "none",

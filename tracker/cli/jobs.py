@@ -227,7 +227,8 @@ def cmd_train(args) -> int:
                      models_info_path=args.models_info, reg_minutes=args.reg_minutes, encoder=args.encoder,
                      init_from=args.init_from, precision=args.precision, reg_epochs=args.reg_epochs,
                      lr=args.lr, batch=args.batch, pretrained=not args.no_pretrained, device=args.device,
-                     kl_warmup=args.kl_warmup, command="app.py " + " ".join(sys.argv[1:]))
+                     kl_warmup=args.kl_warmup, lr_schedule=args.lr_schedule,
+                     command="app.py " + " ".join(sys.argv[1:]))
     if m is None:  # a helper process of a torchrun job: the first process writes the bundle
         return 0
     _print_validation(args.out, m)
@@ -472,6 +473,9 @@ def add_commands(sub, REPO) -> None:
                    help="with --encoder lite*: the same network from random weights, BatchNorm learning (the control)")
     s.add_argument("--lr", type=positive_float, default=1e-3, help="the autoencoder's AdamW learning rate")
     s.add_argument("--batch", type=positive_int, default=128, help="the autoencoder's batch size")
+    s.add_argument("--lr-schedule", choices=["budget", "plateau"], default="plateau",
+                   help="the autoencoder's step size: divided by 5 after 3 epochs without a better validation L2 "
+                        "(plateau), or annealed by a cosine over --minutes (budget; no better on dev, stop 50)")
     s.add_argument("--kl-warmup", type=nonnegative_int, default=0, metavar="STEPS",
                    help="variational methods: raise the KL term's weight from 0 over this many steps (0: full "
                         "weight from the start)")

@@ -46,6 +46,21 @@ def any_rank(flag: bool) -> bool:
     return bool(t.item())
 
 
+def max_over_ranks(value: float) -> float:
+    """The largest of every process's ``value`` (one clock for all: a step size set from the time
+    spent must be the same on every process, or their replicas drift apart)."""
+    rank, n = world()
+    if n == 1:
+        return float(value)
+    import torch
+    import torch.distributed as dist
+    t = torch.tensor([float(value)], dtype=torch.float64)
+    if dist.get_backend() == "nccl":
+        t = t.cuda()
+    dist.all_reduce(t, op=dist.ReduceOp.MAX)
+    return float(t.item())
+
+
 def barrier() -> None:
     if world()[1] > 1:
         import torch.distributed as dist

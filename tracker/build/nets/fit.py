@@ -1,5 +1,6 @@
-"""Autoencoder training loop (torch; a CUDA GPU when asked for, else the CPU): AdamW, plateau schedule, early stopping on the
-validation L2, the thesis's online augmentations, checkpoints and resume."""
+"""Autoencoder training loop (torch; a CUDA GPU when asked for, else the CPU): AdamW, a step size
+cut on validation plateaus (or annealed over the time budget), early stopping on the validation
+L2, the thesis's online augmentations, checkpoints and resume."""
 from __future__ import annotations
 
 import math
@@ -15,8 +16,10 @@ from tqdm import tqdm
 from tracker.core.errors import UserError
 from tracker.build.nets import precision as prec
 from tracker.build.nets.autoencoder import AutoEncoder, loss_terms
+from tracker.build.nets.schedule import budget_lr
 
 KL_ALPHA = 0.1  # Table 4.6
+LR_SCHEDULES = ("budget", "plateau")
 
 
 def to_tensor(u8: np.ndarray) -> torch.Tensor:
@@ -99,7 +102,7 @@ def _flushing_subnormals(fn):
 def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, out_dir: Path,
                       minutes: float = 45.0, batch: int = 128, lr: float = 1e-3, patience: int = 50,
                       seed: int = 0, init_from=None, precision: str = "fp32", max_epochs: int = 1000,
-                      log=print, device: str = "cpu", kl_warmup: int = 0) -> dict:
+                      log=print, device: str = "cpu", kl_warmup: int = 0, lr_schedule: str = "plateau") -> dict:
     """Train until the time budget, early stopping, or ``max_epochs``. Resumes from
     ``out_dir/ae_checkpoint.pt`` when it exists; otherwise ``init_from`` (another run's
     checkpoint) gives the starting weights and optimiser state, with a fresh budget, history
@@ -108,9 +111,13 @@ def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, ou
     ``device``: 'cpu' or 'cuda' (resolved already); batches are cut and augmented on the CPU.
     ``kl_warmup``: the KL term's weight rises linearly from 0 to ``KL_ALPHA`` over this many
     steps (0: full weight from the first step).
+    ``lr_schedule``: 'budget' anneals the step size by a cosine over ``minutes`` (to 2 % of
+    ``lr`` at the end); 'plateau' divides it by 5 after 3 epochs without a better validation L2.
     Returns the training history."""
     from tracker.build.nets import distributed as dd
     rank, n_proc = dd.world()  # several processes under torchrun: each takes its share of every batch
+    if lr_schedule not in LR_SCHEDULES:
+        raise UserError(f"unknown step-size schedule '{lr_schedule}' (choose from {', '.join(LR_SCHEDULES)})")
     torch.manual_seed(seed)
     model.to(device)
     net = model
@@ -169,6 +176,9 @@ def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, ou
             xb = prec.channels_last(augment(to_tensor(x_tr[idx]), g).to(device))
             yb = to_tensor(y_tr[idx]).to(device)
             cb = c_tr[idx].to(device) if cond else None
+            if lr_schedule == "budget":
+                for gr in opt.param_groups:  # (the same on every process under torchrun)
+                    gr["lr"] = budget_lr(lr, dd.max_over_ranks(time.perf_counter() - t_start) / (minutes * 60), step)
             with prec.autocast(precision, device):
                 recon, mu, logvar = net(xb, cb)
             l2, kl = loss_terms(recon, yb, mu, logvar)
@@ -182,7 +192,8 @@ def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, ou
             if dd.any_rank(time.perf_counter() - t_start > minutes * 60):
                 break
         val = evaluate_l2(model, x_va, y_va, c_va if cond else None, batch=256)
-        sched.step(val)
+        if lr_schedule == "plateau":
+            sched.step(val)
         spent = time.perf_counter() - t_start
         for k, v in zip(hist, (epoch, tot / max(cnt, 1), val, opt.param_groups[0]["lr"], spent)):
             hist[k].append(v)
