@@ -176,9 +176,10 @@ def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, ou
             xb = prec.channels_last(augment(to_tensor(x_tr[idx]), g).to(device))
             yb = to_tensor(y_tr[idx]).to(device)
             cb = c_tr[idx].to(device) if cond else None
-            if lr_schedule == "budget":
-                for gr in opt.param_groups:  # (the same on every process under torchrun)
-                    gr["lr"] = budget_lr(lr, dd.max_over_ranks(time.perf_counter() - t_start) / (minutes * 60), step)
+            if lr_schedule == "budget":  # one clock: the same step size on every process under torchrun
+                step_lr = budget_lr(lr, dd.max_over_ranks(time.perf_counter() - t_start) / (minutes * 60), step)
+                for gr in opt.param_groups:
+                    gr["lr"] = step_lr
             with prec.autocast(precision, device):
                 recon, mu, logvar = net(xb, cb)
             l2, kl = loss_terms(recon, yb, mu, logvar)
