@@ -9,6 +9,7 @@ from pathlib import Path
 from tracker.cli.args import (add_precision, add_regressor_budget, finite_float, fraction, id_list, nonnegative_float,
                               nonnegative_int, positive_float, positive_int, shard_spec)
 from tracker.build.decimate import SYNTH_FACES
+from tracker.build.nets.schedule import LR_SCHEDULES
 from tracker.core.errors import UserError
 from tracker.runtime.confidence import UNCERTAIN_BELOW
 
@@ -473,7 +474,7 @@ def add_commands(sub, REPO) -> None:
                    help="with --encoder lite*: the same network from random weights, BatchNorm learning (the control)")
     s.add_argument("--lr", type=positive_float, default=1e-3, help="the autoencoder's AdamW learning rate")
     s.add_argument("--batch", type=positive_int, default=128, help="the autoencoder's batch size")
-    s.add_argument("--lr-schedule", choices=["budget", "plateau"], default="plateau",
+    s.add_argument("--lr-schedule", choices=LR_SCHEDULES, default="plateau",
                    help="the autoencoder's step size: divided by 5 after 3 epochs without a better validation L2 "
                         "(plateau), or annealed by a cosine over --minutes (budget; no better on dev, stop 50)")
     s.add_argument("--kl-warmup", type=nonnegative_int, default=0, metavar="STEPS",

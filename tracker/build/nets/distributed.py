@@ -32,33 +32,28 @@ def world() -> tuple[int, int]:
     return 0, 1
 
 
-def any_rank(flag: bool) -> bool:
-    """True on every process when ``flag`` is true on any (all stop together, or none does)."""
-    rank, n = world()
-    if n == 1:
-        return bool(flag)
+def _max_all(value: float, dtype: str) -> float:
+    """The largest of every process's ``value``, on every process (``value`` itself outside a group)."""
+    if world()[1] == 1:
+        return value
     import torch
     import torch.distributed as dist
-    t = torch.tensor([1 if flag else 0], dtype=torch.int32)
+    t = torch.tensor([value], dtype=getattr(torch, dtype))
     if dist.get_backend() == "nccl":
         t = t.cuda()
     dist.all_reduce(t, op=dist.ReduceOp.MAX)
-    return bool(t.item())
+    return t.item()
+
+
+def any_rank(flag: bool) -> bool:
+    """True on every process when ``flag`` is true on any (all stop together, or none does)."""
+    return bool(_max_all(1 if flag else 0, "int32"))
 
 
 def max_over_ranks(value: float) -> float:
     """The largest of every process's ``value`` (one clock for all: a step size set from the time
     spent must be the same on every process, or their replicas drift apart)."""
-    rank, n = world()
-    if n == 1:
-        return float(value)
-    import torch
-    import torch.distributed as dist
-    t = torch.tensor([float(value)], dtype=torch.float64)
-    if dist.get_backend() == "nccl":
-        t = t.cuda()
-    dist.all_reduce(t, op=dist.ReduceOp.MAX)
-    return float(t.item())
+    return float(_max_all(float(value), "float64"))
 
 
 def barrier() -> None:

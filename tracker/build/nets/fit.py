@@ -16,10 +16,9 @@ from tqdm import tqdm
 from tracker.core.errors import UserError
 from tracker.build.nets import precision as prec
 from tracker.build.nets.autoencoder import AutoEncoder, loss_terms
-from tracker.build.nets.schedule import budget_lr
+from tracker.build.nets.schedule import LR_SCHEDULES, budget_lr
 
 KL_ALPHA = 0.1  # Table 4.6
-LR_SCHEDULES = ("budget", "plateau")
 
 
 def to_tensor(u8: np.ndarray) -> torch.Tensor:
