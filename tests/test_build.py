@@ -31,7 +31,9 @@ def _meshes(tmp_path):
 
 def test_the_budget_is_split_by_the_documented_rule():
     p = bb.plan(bb.Recipe(models="m", minutes=100))
-    assert p["encoder_minutes"] == 42 and p["detector_minutes"] == 32 and p["reg_minutes"] == pytest.approx(4 / 3, abs=1e-3)
+    # the heads' 10 %: three head sets of three regressors' worth each
+    assert p["encoder_minutes"] == 38 and p["detector_minutes"] == 30 and p["reg_minutes"] == pytest.approx(10 / 9, abs=1e-3)
+    assert bb.plan(bb.Recipe(models="m", minutes=100, head_sets=1))["reg_minutes"] == pytest.approx(10 / 3, abs=1e-3)
     assert p["render_seconds"] == p["render_det_seconds"] == 0.10 * 100 * 60
     assert p["render_images"] == p["render_det_images"] == int(0.10 * 100 * 60 * bb.MAX_RATE)
     assert sum(bb.SHARES.values()) == pytest.approx(1.0)
@@ -47,6 +49,7 @@ def test_the_encoder_stage_reserves_time_for_its_crops_and_heads():
     after = 3 * 0.8 + n * (tr.CUT_S_PER_CROP + tr.AFTER_S_PER_CROP) / 60
     assert got == pytest.approx(27.6 - 1.13 - after) and got < 25.2
     assert tr.training_minutes(27.6, 25.2, 1.13, n, 0.8, True) > got  # the exact crops already cut: less to reserve
+    assert tr.training_minutes(27.6, 25.2, 1.13, n, 0.8, False, head_sets=3) == pytest.approx(got - 6 * 0.8)
     assert tr.training_minutes(5.0, 25.0, 1.0, n, 0.8, False) == tr.MIN_TRAIN_MINUTES  # never nothing
     assert tr.training_minutes(5.0, 0.01, 1.0, n, 0.8, False) == 0.01  # never more than asked
 
@@ -57,6 +60,7 @@ def test_recipes_recorded_before_decimated_renders_keep_the_full_meshes():
     assert bb.Recipe.from_dict(old).mesh_faces == 0
     assert bb.Recipe.from_dict({**old, "mesh_faces": 4000}).mesh_faces == 4000
     assert bb.Recipe(models="m").mesh_faces == 4000
+    assert bb.Recipe.from_dict(old).head_sets == 1 and bb.Recipe(models="m").head_sets == 3  # one set before stop 51
 
 
 def test_build_makes_a_bundle_resumes_and_records_its_recipe(small, tmp_path, monkeypatch):
@@ -81,6 +85,9 @@ def test_build_makes_a_bundle_resumes_and_records_its_recipe(small, tmp_path, mo
     assert sum("done before (cached)" in m for m in logs) == 4  # the same command went on where it stopped
     b = open_bundle(out)  # verified: every file hashed, the report too
     assert b.manifest.has_detector and sorted(b.manifest.obj_ids) == [1, 2]
+    assert b.manifest.heads["ensemble"]["seeds"] == [0, 1, 2]  # three head sets averaged
+    from tracker.runtime.heads import HeadEnsemble
+    assert isinstance(b.load_head(), HeadEnsemble) and len(b.load_head().members) == 3
     assert "report/report.md" in b.manifest.files and "report/samples.png" in b.manifest.files
     text = (out / "report" / "report.md").read_text()
     assert "On held-out renders" in text and "| detector |" in text
@@ -100,5 +107,7 @@ def test_build_refuses_bad_input_in_one_line(small, tmp_path):
     src = _meshes(tmp_path)
     with pytest.raises(UserError, match="--objects 7"):
         bb.build(bb.Recipe(models=str(src), minutes=0.05, objects=[1, 7]), tmp_path / "out2", log=lambda m: None)
+    with pytest.raises(UserError, match="--head-sets must be"):
+        bb.build(bb.Recipe(models=str(src), minutes=0.05, head_sets=0), tmp_path / "out3", log=lambda m: None)
     with pytest.raises(UserError, match="no build recipe"):
         bb.recipe_from_manifest(Path(__file__).parents[1] / "models" / "lmo")

@@ -572,6 +572,35 @@ def test_join_heads_averages_refitted_heads_and_refuses_another_encoder(tiny_bun
         refit_heads(tmp_path / "joined", split, out_dir=tmp_path / "kept", keep_regressors=True, log=lambda *a: None)
 
 
+def test_head_sets_are_fitted_with_successive_seeds_and_averaged(tiny_split):
+    """train/build --head-sets N: N head sets (seeds s, s+1, ...) on one encoder's codes, their
+    poses averaged; the codebook is the single set's, the validation the average's."""
+    from tracker.build.crops import build_training_crops, train_val_split
+    from tracker.build.train import fit_head_sets, fit_heads
+    from tracker.core.bop import load_models_info
+    from tracker.core.geometry import mean_pose
+    from tracker.runtime.heads import HeadEnsemble
+    cs = build_training_crops(tiny_split, 32, seed=0, jitter=True)
+    mu = np.random.default_rng(0).normal(size=(len(cs), 16)).astype(np.float32)  # any encoder's codes
+    info = load_models_info(REPO / "models" / "lmo_models_info.json")
+    tr, va = train_val_split(len(cs), 0)
+    opts = dict(reg_epochs=3, codebook_per_object=20, log=lambda *a: None)
+    ens, cb, _, val = fit_head_sets(mu, cs, OBJS, info, tr, va, np.random.default_rng(5), n_sets=2, seed=3, **opts)
+    singles = [fit_heads(mu, cs, OBJS, info, tr, va, np.random.default_rng(5), seed=s, **opts) for s in (3, 4)]
+    assert isinstance(ens, HeadEnsemble) and len(ens.members) == 2
+    assert all(np.array_equal(cb.codes_[o][0], singles[0][1].codes_[o][0]) for o in OBJS)  # the first set's views
+    box, K = cs.box[va], cs.K[va]
+    preds = [h.predict(mu[va], cs.obj_id[va], box, K) for h, *_ in singles]
+    assert not np.allclose(preds[0][0], preds[1][0])  # two seeds, two fits
+    for member, p in zip(ens.members, preds):
+        assert np.allclose(member.predict(mu[va], cs.obj_id[va], box, K)[1], p[1])
+    R, t = ens.predict(mu[va], cs.obj_id[va], box, K)
+    assert np.allclose(t, mean_pose(np.stack([p[0] for p in preds]), np.stack([p[1] for p in preds]))[1])
+    assert set(val) == {"regression", "aae"} and val["regression"] != singles[0][3]["regression"]
+    one = fit_head_sets(mu, cs, OBJS, info, tr, va, np.random.default_rng(5), n_sets=1, seed=3, **opts)
+    assert not isinstance(one[0], HeadEnsemble) and one[3] == singles[0][3]
+
+
 def _failure(stderr: str) -> str:
     """What a failed torchrun job said: its processes' own errors (an abort's message comes
     before the launcher's long report) and the end."""

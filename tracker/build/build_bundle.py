@@ -17,9 +17,10 @@ Stages, run in order; everything they make lives in ``MODEL_DIR.work/`` except t
 
 The budget (:func:`plan`): ``--minutes`` is split as 20 % rendering (half per split: each
 renders for its share of the time, at least :data:`MIN_IMAGES` images, at most
-:data:`MAX_RATE` images per second of it), 46 % encoder (of which 4 points for the heads; the
-autoencoder trains for what is left of the 46 % after cutting the crops, and before the heads and
-the rest: :func:`tracker.build.train.training_minutes`), 32 % detector (its loading, validation and
+:data:`MAX_RATE` images per second of it), 48 % encoder (of which 10 points for the heads: three
+head sets averaged, :func:`tracker.build.train.fit_head_sets`; the autoencoder trains for what is
+left of the 48 % after cutting the crops, and before the heads and the rest:
+:func:`tracker.build.train.training_minutes`), 30 % detector (its loading, validation and
 export included), 2 % held-out check and report (40 renders and two evaluations: seconds). Each stage is cached by a hash of its options
 and of the stages it reads; a rerun of the same command skips finished stages, and
 ``train``/``train-detector`` resume from their checkpoints. Ctrl-C keeps what is done. The
@@ -39,7 +40,7 @@ from pathlib import Path
 from tracker.build.decimate import SYNTH_FACES
 from tracker.core.errors import UserError
 
-SHARES = {"render": 0.10, "render-det": 0.10, "encoder": 0.42, "heads": 0.04, "detector": 0.32, "check": 0.02}
+SHARES = {"render": 0.10, "render-det": 0.10, "encoder": 0.38, "heads": 0.10, "detector": 0.30, "check": 0.02}
 MAX_RATE = 50.0  # images per second of a split's time share: the cap on its size (2 workers here: 5-15)
 MIN_IMAGES = 60
 CHECK_IMAGES = 40
@@ -68,12 +69,15 @@ class Recipe:
     device: str = "auto"
     # the renders' meshes decimated to about this many faces (synth's default); 0: the full meshes
     mesh_faces: int = SYNTH_FACES
+    # head sets fitted on the encoder with seeds seed, seed + 1, ... and averaged
+    head_sets: int = 3
     extra: dict = field(default_factory=dict)
 
     @classmethod
     def from_dict(cls, d: dict) -> "Recipe":
         known = {k: d[k] for k in cls.__dataclass_fields__ if k in d}
         known.setdefault("mesh_faces", 0)  # recorded before stop 47: the full meshes, as they were built
+        known.setdefault("head_sets", 1)  # recorded before stop 51: one head set
         return cls(**known)
 
 
@@ -85,7 +89,8 @@ def plan(recipe: Recipe) -> dict:
             "render_det_seconds": round(SHARES["render-det"] * m * 60, 1),
             "render_det_images": images(SHARES["render-det"]),
             "encoder_minutes": round(SHARES["encoder"] * m, 3),
-            "reg_minutes": round(SHARES["heads"] * m / 3, 3),  # three MLP regressors
+            # each head set: three regressors' worth (the MLPs 2, the KNN's choice and the trees 1)
+            "reg_minutes": round(SHARES["heads"] * m / (3 * recipe.head_sets), 3),
             "detector_minutes": round(SHARES["detector"] * m, 3), "check_images": CHECK_IMAGES}
 
 
@@ -132,6 +137,8 @@ def build(recipe: Recipe, out_dir, log=print) -> dict:
         raise UserError(f"--prior must be table or sphere, not '{recipe.prior}'")
     if not recipe.minutes > 0:
         raise UserError(f"--minutes must be positive, not {recipe.minutes}")
+    if not (isinstance(recipe.head_sets, int) and recipe.head_sets >= 1):
+        raise UserError(f"--head-sets must be a whole number of at least 1, not {recipe.head_sets}")
     from tracker.build.prepare import mesh_files
     mesh_files(recipe.models)  # a bad --models fails before anything is written
     root = work_dir(out) / "build"
@@ -216,7 +223,8 @@ def build(recipe: Recipe, out_dir, log=print) -> dict:
 
     # 4. encoder and heads
     k_enc = _key("encoder", k_render, k_render_det, recipe.method, recipe.encoder, recipe.size, recipe.latent,
-                 p["encoder_minutes"], p["reg_minutes"], recipe.seed)
+                 p["encoder_minutes"], p["reg_minutes"], recipe.seed,
+                 *([recipe.head_sets] if recipe.head_sets != 1 else []))
 
     def do_encoder():
         from tracker.build.train import train_bundle
@@ -226,7 +234,8 @@ def build(recipe: Recipe, out_dir, log=print) -> dict:
                 (work_dir(out) / f).unlink(missing_ok=True)
         m = train_bundle(joined(), out, method=recipe.method, size=recipe.size, latent=recipe.latent,
                          minutes=p["encoder_minutes"], seed=recipe.seed, reg_minutes=p["reg_minutes"],
-                         stage_minutes=p["encoder_minutes"] + 3 * p["reg_minutes"],
+                         stage_minutes=p["encoder_minutes"] + 3 * recipe.head_sets * p["reg_minutes"],
+                         head_sets=recipe.head_sets,
                          models_info_path=models_dir / "models_info.json", log=log, encoder=recipe.encoder,
                          device=recipe.device, command=f"app.py build --models {recipe.models} --out {out}")
         v = m.validation_synthetic

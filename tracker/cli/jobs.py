@@ -228,7 +228,7 @@ def cmd_train(args) -> int:
                      models_info_path=args.models_info, reg_minutes=args.reg_minutes, encoder=args.encoder,
                      init_from=args.init_from, precision=args.precision, reg_epochs=args.reg_epochs,
                      lr=args.lr, batch=args.batch, pretrained=not args.no_pretrained, device=args.device,
-                     kl_warmup=args.kl_warmup, lr_schedule=args.lr_schedule,
+                     kl_warmup=args.kl_warmup, lr_schedule=args.lr_schedule, head_sets=args.head_sets,
                      command="app.py " + " ".join(sys.argv[1:]))
     if m is None:  # a helper process of a torchrun job: the first process writes the bundle
         return 0
@@ -247,7 +247,7 @@ def cmd_build(args) -> int:
         recipe = Recipe(models=str(args.models), minutes=args.minutes, objects=args.objects, prior=args.prior,
                         units=args.units, seed=args.seed, encoder=args.encoder, size=args.size,
                         detector_backbone=args.detector_backbone, workers=args.workers, device=args.device,
-                        mesh_faces=args.mesh_faces)
+                        mesh_faces=args.mesh_faces, head_sets=args.head_sets)
     s = build(recipe, args.out, log=lambda m: print(m, file=sys.stderr))
     det = s["stages"].get("check", {}).get("detector", {})
     print(f"built {args.out} in {s['minutes']} min this run (budget {s['budget_minutes']:g}): on held-out renders "
@@ -477,6 +477,8 @@ def add_commands(sub, REPO) -> None:
     s.add_argument("--lr-schedule", choices=LR_SCHEDULES, default="plateau",
                    help="the autoencoder's step size: divided by 5 after 3 epochs without a better validation L2 "
                         "(plateau), or annealed by a cosine over --minutes (budget; no better on dev, stop 50)")
+    s.add_argument("--head-sets", type=positive_int, default=1, metavar="N",
+                   help="pose-head sets fitted with seeds seed, seed+1, ... and averaged, each with --reg-minutes")
     s.add_argument("--kl-warmup", type=nonnegative_int, default=0, metavar="STEPS",
                    help="variational methods: raise the KL term's weight from 0 over this many steps (0: full "
                         "weight from the start)")
@@ -571,6 +573,9 @@ def add_commands(sub, REPO) -> None:
                    help=f"render the objects decimated to about N faces (default {SYNTH_FACES}; 0: the full meshes)")
     s.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto",
                    help="where the networks train: a CUDA GPU where torch sees one (auto), or the CPU")
+    s.add_argument("--head-sets", type=positive_int, default=3, metavar="N",
+                   help="pose-head sets fitted with seeds seed, seed+1, ... and averaged (default 3; 1: the recipe "
+                        "before stop 51)")
     s.add_argument("--from-manifest", metavar="BUNDLE", help="redo the recipe a built bundle records (its options)")
     s.set_defaults(func=cmd_build)
 
