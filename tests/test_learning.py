@@ -572,7 +572,7 @@ def test_join_heads_averages_refitted_heads_and_refuses_another_encoder(tiny_bun
         refit_heads(tmp_path / "joined", split, out_dir=tmp_path / "kept", keep_regressors=True, log=lambda *a: None)
 
 
-def test_head_sets_are_fitted_with_successive_seeds_and_averaged(tiny_split):
+def test_head_sets_are_fitted_with_successive_seeds_and_averaged(tiny_split, monkeypatch):
     """train/build --head-sets N: N head sets (seeds s, s+1, ...) on one encoder's codes, their
     poses averaged; the codebook is the single set's, the validation the average's."""
     from tracker.build.crops import build_training_crops, train_val_split
@@ -587,6 +587,7 @@ def test_head_sets_are_fitted_with_successive_seeds_and_averaged(tiny_split):
     opts = dict(reg_epochs=3, codebook_per_object=20, log=lambda *a: None)
     ens, cb, _, val = fit_head_sets(mu, cs, OBJS, info, tr, va, np.random.default_rng(5), n_sets=2, seed=3, **opts)
     singles = [fit_heads(mu, cs, OBJS, info, tr, va, np.random.default_rng(5), seed=s, **opts) for s in (3, 4)]
+    assert len(tr) < 100  # so the distance KNNs keep every code, with one set or two
     assert isinstance(ens, HeadEnsemble) and len(ens.members) == 2
     assert all(np.array_equal(cb.codes_[o][0], singles[0][1].codes_[o][0]) for o in OBJS)  # the first set's views
     box, K = cs.box[va], cs.K[va]
@@ -599,6 +600,10 @@ def test_head_sets_are_fitted_with_successive_seeds_and_averaged(tiny_split):
     assert set(val) == {"regression", "aae"} and val["regression"] != singles[0][3]["regression"]
     one = fit_head_sets(mu, cs, OBJS, info, tr, va, np.random.default_rng(5), n_sets=1, seed=3, **opts)
     assert not isinstance(one[0], HeadEnsemble) and one[3] == singles[0][3]
+    from tracker.build import train as tr_mod
+    monkeypatch.setattr(tr_mod, "KNN_MAX_ROWS", 6)  # the sets' KNNs share the bundle's room for codes
+    assert fit_head_sets(mu, cs, OBJS, info, tr, va, np.random.default_rng(5), n_sets=2, seed=3, **opts)[2]["knn"]["rows"] == 3
+    assert fit_head_sets(mu, cs, OBJS, info, tr, va, np.random.default_rng(5), n_sets=1, seed=3, **opts)[2]["knn"]["rows"] == 6
 
 
 def _failure(stderr: str) -> str:

@@ -25,7 +25,9 @@ from tracker.runtime.heads import (Codebook, HeadEnsemble, PoseHead, apparent_si
 
 KNN_K = (1, 2, 3, 5, 8, 12, 20)
 KNN_BOX_WEIGHT = (1.0, 3.0, 10.0)
-KNN_MAX_ROWS = 30_000  # the distance KNN keeps its training codes: 30 k x 138 float32 = 17 MB of the bundle
+# the distance KNN keeps its training codes: 30 k x 138 float32 = 17 MB of the bundle (with several
+# head sets, this many among them all: three KNNs of 30 k made a one-object bundle of 55 MB)
+KNN_MAX_ROWS = 30_000
 # Rotation MLP widths. On models/lmo's frozen encoder (heads on jittered + exact boxes, LM-O dev
 # frames, GT boxes): (512, 512, 512) for 5 min reached ADD(I) 0.127 / MSPD 0.476 / RE 37.2 deg,
 # (256, 256) for 3 min 0.117 / 0.445 / 39.3 deg; one layer of 128, more weight decay, input
@@ -87,14 +89,15 @@ def mlp_budget(reg_minutes: float, reg_epochs: int | None, share: float = 1.0) -
 
 
 def choose_distance(Xtr, ytr, Xva, yva, size_va, centre_va_t, t_va, K_va, reg_minutes: float, seed: int = 0,
-                    log=print, reg_epochs: int | None = None):
+                    log=print, reg_epochs: int | None = None, max_rows: int | None = None):
     """The distance head: the KNN of :func:`choose_knn` or an MLP, whichever has the lower
     whole-translation error on validation (the thesis prefers an MLP or RF once many objects
-    share one model). The KNN keeps at most ``KNN_MAX_ROWS`` training codes, drawn at random,
+    share one model). The KNN keeps at most ``max_rows`` (default ``KNN_MAX_ROWS``) training codes, drawn at random,
     so that the bundle stays small. Returns ``(model, {"head", "val_te_median_mm", "knn"})``."""
+    max_rows = KNN_MAX_ROWS if max_rows is None else max_rows
     keep = np.arange(len(Xtr))
-    if len(keep) > KNN_MAX_ROWS:
-        keep = np.sort(np.random.default_rng(seed).choice(len(Xtr), KNN_MAX_ROWS, replace=False))
+    if len(keep) > max_rows:
+        keep = np.sort(np.random.default_rng(seed).choice(len(Xtr), max_rows, replace=False))
     knn, knn_info = choose_knn(Xtr[keep], ytr[keep], Xva, size_va, centre_va_t, t_va, K_va, log=log)
     knn_info["rows"] = len(keep)
     log("distance MLP ...")
@@ -149,7 +152,7 @@ def with_exact_boxes(cs, mu, cs_exact, mu_exact, tr, va):
 
 def fit_heads(mu, cs, obj_ids, models_info, tr, va, rng, reg_minutes: float = 5.0, codebook_per_object: int = 1500,
               seed: int = 0, n_jittered: int | None = None, keep: PoseHead | None = None, log=print,
-              reg_epochs: int | None = None, validate: bool = True):
+              reg_epochs: int | None = None, validate: bool = True, knn_max_rows: int | None = None):
     """The regressors and the AAE codebook on frozen latent codes ``mu`` of the crops ``cs``.
 
     Rotations are learnt relative to the viewing ray through the object's centre (the crop
@@ -191,7 +194,7 @@ def fit_heads(mu, cs, obj_ids, models_info, tr, va, rng, reg_minutes: float = 5.
         dist, dist_info = choose_distance(distance_inputs(mu[tr], idx[tr], n_obj, cs.box[tr], K[tr]), log_tz_size[tr],
                                           distance_inputs(mu[va], idx[va], n_obj, cs.box[va], K[va]), log_tz_size[va],
                                           size_feat[va], cen_va, cs.t[va], K[va], reg_minutes, seed=seed, log=log,
-                                          reg_epochs=reg_epochs)
+                                          reg_epochs=reg_epochs, max_rows=knn_max_rows)
     by_rot, by_rot_info = choose_distance_by_rotation(
         R_ray[tr], idx[tr], n_obj, cs.box[tr], K[tr], log_tz_size[tr],
         rot.predict(rotation_inputs(mu[va], idx[va], n_obj)), idx[va], cs.box[va], K[va],
@@ -235,8 +238,11 @@ def fit_head_sets(mu, cs, obj_ids, models_info, tr, va, rng, n_sets: int = 1, se
     """:func:`fit_heads` ``n_sets`` times, with seeds ``seed``, ``seed + 1``, ..., averaged in one
     :class:`HeadEnsemble` (one set: its :class:`PoseHead`). The codebook and the distance-head
     info are the first set's (``rng`` draws the codebook, as with one set); the validation
-    figures are the average's. Three sets on one encoder: dev mean +0.018 and +0.021 over the
-    single sets' mean (stops 47 and 49)."""
+    figures are the average's. Their distance KNNs (where chosen) keep ``KNN_MAX_ROWS`` codes
+    among them all, so that the bundle stays as small as with one set. Three sets on one encoder:
+    dev mean +0.018 and +0.021 over the single sets' mean (stops 47 and 49); in ``build`` +0.051
+    (stop 51)."""
+    fit_options["knn_max_rows"] = KNN_MAX_ROWS // n_sets
     head, codebook, dist_info, val = fit_heads(mu, cs, obj_ids, models_info, tr, va, rng, seed=seed,
                                                n_jittered=n_jittered, log=log, validate=n_sets == 1, **fit_options)
     if n_sets == 1:
