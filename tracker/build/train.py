@@ -46,6 +46,12 @@ def _torch():
     return torch
 
 
+def _object_index(obj_ids, ids) -> np.ndarray:
+    """Each of ``ids``' position in ``obj_ids`` (the one-hot's order)."""
+    lut = {o: i for i, o in enumerate(obj_ids)}
+    return np.array([lut[int(o)] for o in ids])
+
+
 def _sym_rotations(obj_idx, obj_ids, models_info) -> np.ndarray:
     """(N, S, 3, 3): each sample's symmetry rotations, identity first, padded with identity."""
     per = [symmetry_rotations(models_info[o]) for o in obj_ids]
@@ -162,8 +168,7 @@ def fit_heads(mu, cs, obj_ids, models_info, tr, va, rng, reg_minutes: float = 5.
     head whose rotation, centre and latent distance regressors are kept as they are (only the
     distance-from-rotation trees and the codebook are fitted). Returns ``(head, codebook,
     distance-head info, synthetic validation figures)`` (figures None without ``validate``)."""
-    lut = {o: i for i, o in enumerate(obj_ids)}
-    idx = np.array([lut[int(o)] for o in cs.obj_id])
+    idx = _object_index(obj_ids, cs.obj_id)
     n_obj = len(obj_ids)
     symR = _sym_rotations(idx, obj_ids, models_info)
     K = cs.K
@@ -254,8 +259,7 @@ def fit_head_sets(mu, cs, obj_ids, models_info, tr, va, rng, n_sets: int = 1, se
                                log=log, validate=False, **fit_options)[0])
     ensemble = HeadEnsemble(heads, {o: symmetry_rotations(models_info[o]) for o in obj_ids})
     ensemble.codebook = codebook
-    lut = {o: i for i, o in enumerate(obj_ids)}
-    symR = _sym_rotations(np.array([lut[int(o)] for o in cs.obj_id]), obj_ids, models_info)
+    symR = _sym_rotations(_object_index(obj_ids, cs.obj_id), obj_ids, models_info)
     log(f"validation of the {n_sets} head sets averaged:")
     return ensemble, codebook, dist_info, validate_head(ensemble, mu, cs, va, symR, n_jittered, log)
 
@@ -365,8 +369,7 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
 
     cs = dd.first_then_rest(lambda: crops(jitter=True))  # detector-like boxes; the first process cuts and caches
     obj_ids = sorted(int(o) for o in np.unique(cs.obj_id))
-    lut = {o: i for i, o in enumerate(obj_ids)}
-    idx = np.array([lut[int(o)] for o in cs.obj_id])
+    idx = _object_index(obj_ids, cs.obj_id)
     n_obj = len(obj_ids)
 
     rng = np.random.default_rng(seed)
