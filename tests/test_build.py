@@ -30,13 +30,34 @@ def _meshes(tmp_path):
 
 
 def test_the_budget_is_split_by_the_documented_rule():
-    p = bb.plan(bb.Recipe(models="m", minutes=100))
+    p = bb.plan(bb.Recipe(models="m", minutes=100), ram_bytes=1e12)  # memory to spare: time decides
     # the heads' 10 %: three head sets of three regressors' worth each
     assert p["encoder_minutes"] == 38 and p["detector_minutes"] == 30 and p["reg_minutes"] == pytest.approx(10 / 9, abs=1e-3)
     assert bb.plan(bb.Recipe(models="m", minutes=100, head_sets=1))["reg_minutes"] == pytest.approx(10 / 3, abs=1e-3)
     assert p["render_seconds"] == p["render_det_seconds"] == 0.10 * 100 * 60
     assert p["render_images"] == p["render_det_images"] == int(0.10 * 100 * 60 * bb.MAX_RATE)
     assert sum(bb.SHARES.values()) == pytest.approx(1.0)
+
+
+def test_the_splits_are_capped_by_memory_and_their_unused_time_goes_to_training():
+    """A long budget would render more images than the machine can train on (an 8-object build
+    of 8 h: ~90 k per split against ~16 k that 24 GB hold): the splits stop at the memory's cap,
+    and the time they leave goes to the three training stages in proportion to their shares."""
+    cap24 = bb.memory_cap(64, 24e9)
+    assert 10_000 < cap24 < 20_000  # 0.75 x 24 GB over ~1.1 MB a pair of images
+    assert bb.memory_cap(64, 48e9) > 2 * cap24 and bb.memory_cap(128, 24e9) < cap24 / 3  # 4x the bytes a crop
+    assert bb.memory_cap(32, 24e9) == bb.memory_cap(16, 24e9)  # small crops: the detector's images bound it
+    p = bb.plan(bb.Recipe(models="m", minutes=480), ram_bytes=24e9)
+    assert p["render_images"] == p["render_det_images"] == cap24 == p["max_images"]
+    assert bb.plan(bb.Recipe(models="m", minutes=30), ram_bytes=24e9)["render_images"] == int(0.1 * 30 * 60 * bb.MAX_RATE)
+    assert bb.plan(bb.Recipe(models="m", minutes=480, max_images=500), ram_bytes=24e9)["render_images"] == 500
+    q = bb.share_out(p, 480, 2 * 30 * 60)  # both splits done in 18 of their 48 min: 60 min left over
+    train = ("encoder_minutes", "reg_minutes", "detector_minutes")
+    assert all(q[k] > p[k] for k in train)
+    assert q["encoder_minutes"] / q["detector_minutes"] == pytest.approx(p["encoder_minutes"] / p["detector_minutes"], rel=1e-3)
+    used = q["encoder_minutes"] + 3 * 3 * q["reg_minutes"] + q["detector_minutes"]  # three sets, three regressors each
+    assert used == pytest.approx(p["encoder_minutes"] + 9 * p["reg_minutes"] + p["detector_minutes"] + 60, abs=0.01)
+    assert bb.share_out(p, 480, 0) == p and bb.share_out(p, 480, -5) == p  # a split over its time takes nothing
 
 
 def test_the_encoder_stage_reserves_time_for_its_crops_and_heads():

@@ -17,7 +17,9 @@ Stages, run in order; everything they make lives in ``MODEL_DIR.work/`` except t
 
 The budget (:func:`plan`): ``--minutes`` is split as 20 % rendering (half per split: each
 renders for its share of the time, at least :data:`MIN_IMAGES` images, at most
-:data:`MAX_RATE` images per second of it), 48 % encoder (of which 10 points for the heads: three
+:data:`MAX_RATE` images per second of it and at most what this machine's memory holds,
+:func:`memory_cap`; a split that reaches its image count before its time leaves the rest to
+the three training stages, in proportion to their shares: :func:`share_out`), 48 % encoder (of which 10 points for the heads: three
 head sets averaged, :func:`tracker.build.train.fit_head_sets`; the autoencoder trains for what is
 left of the 48 % after cutting the crops, and before the heads and the rest:
 :func:`tracker.build.train.training_minutes`), 30 % detector (its loading, validation and
@@ -31,6 +33,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import shutil
 import sys
 import time
@@ -43,6 +46,16 @@ from tracker.core.errors import UserError
 SHARES = {"render": 0.10, "render-det": 0.10, "encoder": 0.38, "heads": 0.10, "detector": 0.30, "check": 0.02}
 MAX_RATE = 50.0  # images per second of a split's time share: the cap on its size (2 workers here: 5-15)
 MIN_IMAGES = 60
+# the memory a split's image holds at the build's peak, the encoder stage (two crop sets, their
+# training copies, the heads' inputs): measured on a two-object build's 21,300 images (112,199
+# crops at 64 px), 12.5 GB, about 0.55 MB an image over 1.5 GB; the detector stage held 6.2 GB
+# for the same images (0.23 MB an image at 320 x 240). The splits' images are capped so that
+# this stays within MEMORY_SHARE of the machine's memory (an 8-object build of several hours
+# would otherwise render more than 24 GB can train on)
+BYTES_PER_IMAGE_64 = 0.55e6
+DET_BYTES_PER_IMAGE = 0.23e6
+BASE_BYTES = 1.5e9
+MEMORY_SHARE = 0.75
 CHECK_IMAGES = 40
 STAGES = ("models", "render", "render-det", "encoder", "detector", "check", "report")
 # each stage's share of the budget, for the estimate of the time left before it starts
@@ -71,6 +84,8 @@ class Recipe:
     mesh_faces: int = SYNTH_FACES
     # head sets fitted on the encoder with seeds seed, seed + 1, ... and averaged
     head_sets: int = 3
+    # the most images per split; None: what this machine's memory holds (memory_cap)
+    max_images: int | None = None
     extra: dict = field(default_factory=dict)
 
     @classmethod
@@ -81,17 +96,39 @@ class Recipe:
         return cls(**known)
 
 
-def plan(recipe: Recipe) -> dict:
+def memory_cap(size: int = 64, ram_bytes: float | None = None) -> int:
+    """The most images per split (two splits) whose crops at ``size`` px and detector inputs fit
+    in :data:`MEMORY_SHARE` of ``ram_bytes`` (default: this machine's memory) at the build's peak."""
+    if ram_bytes is None:
+        ram_bytes = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    per_image = max(BYTES_PER_IMAGE_64 * (size / 64) ** 2, DET_BYTES_PER_IMAGE)
+    return max(MIN_IMAGES, int((MEMORY_SHARE * ram_bytes - BASE_BYTES) / per_image / 2))
+
+
+def plan(recipe: Recipe, ram_bytes: float | None = None) -> dict:
     """Minutes per stage, seconds and most images per split for ``recipe.minutes`` (the rule above)."""
     m = float(recipe.minutes)
-    images = lambda share: max(MIN_IMAGES, int(share * m * 60 * MAX_RATE))  # noqa: E731
+    cap = recipe.max_images or memory_cap(recipe.size, ram_bytes)
+    images = lambda share: max(MIN_IMAGES, min(cap, int(share * m * 60 * MAX_RATE)))  # noqa: E731
     return {"render_seconds": round(SHARES["render"] * m * 60, 1), "render_images": images(SHARES["render"]),
             "render_det_seconds": round(SHARES["render-det"] * m * 60, 1),
             "render_det_images": images(SHARES["render-det"]),
             "encoder_minutes": round(SHARES["encoder"] * m, 3),
             # each head set: three regressors' worth (the MLPs 2, the KNN's choice and the trees 1)
             "reg_minutes": round(SHARES["heads"] * m / (3 * recipe.head_sets), 3),
-            "detector_minutes": round(SHARES["detector"] * m, 3), "check_images": CHECK_IMAGES}
+            "detector_minutes": round(SHARES["detector"] * m, 3), "check_images": CHECK_IMAGES,
+            "max_images": cap}
+
+
+def share_out(planned: dict, minutes: float, leftover_seconds: float) -> dict:
+    """The plan after the renders: the seconds the splits did not use (they reached their image
+    count first) go to the encoder, its heads and the detector in proportion to their shares."""
+    if leftover_seconds <= 0:
+        return planned
+    train = SHARES["encoder"] + SHARES["heads"] + SHARES["detector"]
+    scale = 1 + leftover_seconds / 60 / (train * float(minutes))
+    return {**planned, **{k: round(planned[k] * scale, 3) for k in ("encoder_minutes", "reg_minutes", "detector_minutes")},
+            "render_leftover_minutes": round(leftover_seconds / 60, 1)}
 
 
 def versions() -> dict:
@@ -196,7 +233,8 @@ def build(recipe: Recipe, out_dir, log=print) -> dict:
                            seconds=seconds, min_images=min(n, MIN_IMAGES))
             if rep.interrupted:
                 raise KeyboardInterrupt
-            return {"images": rep.images, "images_per_s": round(rep.images_per_s, 2)}
+            return {"images": rep.images, "images_per_s": round(rep.images_per_s, 2),
+                    "time_limited": rep.time_limited}
         return run
 
     split_enc, split_det = root / "split_encoder", root / "split_detector"
@@ -211,6 +249,10 @@ def build(recipe: Recipe, out_dir, log=print) -> dict:
                         recipe.prior, obj_ids, det_opts, *faces)
     stage(3, "render-det", k_render_det, render(split_det, p["render_det_images"], recipe.seed + 1,
                                                 p["render_det_seconds"], **det_opts))
+    # a split that stopped at its image count (not its time) leaves the rest of its share
+    leftover = sum(max(0.0, p[f"{name.replace('-', '_')}_seconds"] - state.d[name]["seconds"])
+                   for name in ("render", "render-det") if state.d[name].get("time_limited") is False)
+    p = share_out(p, recipe.minutes, leftover)
 
     # both splits train both networks: linked into one (no copies) once both are made
     split_all = root / "split_all"

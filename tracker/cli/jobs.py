@@ -247,7 +247,7 @@ def cmd_build(args) -> int:
         recipe = Recipe(models=str(args.models), minutes=args.minutes, objects=args.objects, prior=args.prior,
                         units=args.units, seed=args.seed, encoder=args.encoder, size=args.size,
                         detector_backbone=args.detector_backbone, workers=args.workers, device=args.device,
-                        mesh_faces=args.mesh_faces, head_sets=args.head_sets)
+                        mesh_faces=args.mesh_faces, head_sets=args.head_sets, max_images=args.max_images)
     s = build(recipe, args.out, log=lambda m: print(m, file=sys.stderr))
     det = s["stages"].get("check", {}).get("detector", {})
     print(f"built {args.out} in {s['minutes']} min this run (budget {s['budget_minutes']:g}): on held-out renders "
@@ -576,6 +576,8 @@ def add_commands(sub, REPO) -> None:
     s.add_argument("--head-sets", type=positive_int, default=3, metavar="N",
                    help="pose-head sets fitted with seeds seed, seed+1, ... and averaged (default 3; 1: the recipe "
                         "before stop 51)")
+    s.add_argument("--max-images", type=positive_int, metavar="N",
+                   help="the most images per rendered split (default: what this machine's memory can train on)")
     s.add_argument("--from-manifest", metavar="BUNDLE", help="redo the recipe a built bundle records (its options)")
     s.set_defaults(func=cmd_build)
 
