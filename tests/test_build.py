@@ -58,6 +58,15 @@ def test_the_splits_are_capped_by_memory_and_their_unused_time_goes_to_training(
     used = q["encoder_minutes"] + 3 * 3 * q["reg_minutes"] + q["detector_minutes"]  # three sets, three regressors each
     assert used == pytest.approx(p["encoder_minutes"] + 9 * p["reg_minutes"] + p["detector_minutes"] + 60, abs=0.01)
     assert bb.share_out(p, 480, 0) == p and bb.share_out(p, 480, -5) == p  # a split over its time takes nothing
+    # what the render stages recorded: only a split that stopped at its count leaves time
+    st = lambda s, limited: {"seconds": s, **({} if limited is None else {"time_limited": limited})}  # noqa: E731
+    share = p["render_seconds"]
+    assert bb.leftover_seconds(p, {"render": st(600, False), "render-det": st(700, False)}) == 2 * share - 1300
+    assert bb.leftover_seconds(p, {"render": st(600, False), "render-det": st(share, True)}) == share - 600
+    assert bb.leftover_seconds(p, {"render": st(600, None), "render-det": st(share + 50, False)}) == 0  # older; over
+    assert bb.Recipe.from_dict({"models": "m"}).max_images is None
+    with pytest.raises(UserError, match="--max-images must be"):
+        bb.build(bb.Recipe(models=str(FIX), max_images=0), "/nonexistent/out", log=lambda m: None)
 
 
 def test_the_encoder_stage_reserves_time_for_its_crops_and_heads():

@@ -108,7 +108,7 @@ def memory_cap(size: int = 64, ram_bytes: float | None = None) -> int:
 def plan(recipe: Recipe, ram_bytes: float | None = None) -> dict:
     """Minutes per stage, seconds and most images per split for ``recipe.minutes`` (the rule above)."""
     m = float(recipe.minutes)
-    cap = recipe.max_images or memory_cap(recipe.size, ram_bytes)
+    cap = max(MIN_IMAGES, recipe.max_images or memory_cap(recipe.size, ram_bytes))
     images = lambda share: max(MIN_IMAGES, min(cap, int(share * m * 60 * MAX_RATE)))  # noqa: E731
     return {"render_seconds": round(SHARES["render"] * m * 60, 1), "render_images": images(SHARES["render"]),
             "render_det_seconds": round(SHARES["render-det"] * m * 60, 1),
@@ -129,6 +129,15 @@ def share_out(planned: dict, minutes: float, leftover_seconds: float) -> dict:
     scale = 1 + leftover_seconds / 60 / (train * float(minutes))
     return {**planned, **{k: round(planned[k] * scale, 3) for k in ("encoder_minutes", "reg_minutes", "detector_minutes")},
             "render_leftover_minutes": round(leftover_seconds / 60, 1)}
+
+
+def leftover_seconds(planned: dict, stages: dict) -> float:
+    """The seconds of their shares that the render stages did not use: only a split that stopped
+    at its image count (``time_limited`` False) leaves any; one over its time takes none from
+    the others, and one recorded before stop 52 (no ``time_limited``) none either."""
+    return sum(max(0.0, planned[key] - stages[name]["seconds"])
+               for name, key in (("render", "render_seconds"), ("render-det", "render_det_seconds"))
+               if stages[name].get("time_limited") is False)
 
 
 def versions() -> dict:
@@ -176,6 +185,8 @@ def build(recipe: Recipe, out_dir, log=print) -> dict:
         raise UserError(f"--minutes must be positive, not {recipe.minutes}")
     if not (isinstance(recipe.head_sets, int) and recipe.head_sets >= 1):
         raise UserError(f"--head-sets must be a whole number of at least 1, not {recipe.head_sets}")
+    if recipe.max_images is not None and not (isinstance(recipe.max_images, int) and recipe.max_images >= 1):
+        raise UserError(f"--max-images must be a whole number of at least 1, not {recipe.max_images}")
     from tracker.build.prepare import mesh_files
     mesh_files(recipe.models)  # a bad --models fails before anything is written
     root = work_dir(out) / "build"
@@ -223,6 +234,8 @@ def build(recipe: Recipe, out_dir, log=print) -> dict:
     from tracker.build.synth.engine import SynthConfig, generate
     backgrounds = str(shared_data() / "backgrounds")
     p = plan(recipe)
+    log(f"at most {p['max_images']:,} images per rendered split "
+        f"({'--max-images' if recipe.max_images else 'what this machine can train on; --max-images N sets it'})")
 
     def render(split: Path, n: int, seed: int, seconds: float | None = None, **opts):
         def run():
@@ -250,9 +263,7 @@ def build(recipe: Recipe, out_dir, log=print) -> dict:
     stage(3, "render-det", k_render_det, render(split_det, p["render_det_images"], recipe.seed + 1,
                                                 p["render_det_seconds"], **det_opts))
     # a split that stopped at its image count (not its time) leaves the rest of its share
-    leftover = sum(max(0.0, p[f"{name.replace('-', '_')}_seconds"] - state.d[name]["seconds"])
-                   for name in ("render", "render-det") if state.d[name].get("time_limited") is False)
-    p = share_out(p, recipe.minutes, leftover)
+    p = share_out(p, recipe.minutes, leftover_seconds(p, state.d))
 
     # both splits train both networks: linked into one (no copies) once both are made
     split_all = root / "split_all"
@@ -323,7 +334,9 @@ def build(recipe: Recipe, out_dir, log=print) -> dict:
     def do_report():
         _record_recipe(out, root, recipe, p, state.d)
         return {"report": str(out / "report" / "report.md")}
-    recorded = {k: v for k, v in asdict(recipe).items() if k != "mesh_faces" or v}  # (0: an older build's key)
+    # (mesh_faces 0 and max_images None: the keys of builds made before they were recorded)
+    recorded = {k: v for k, v in asdict(recipe).items()
+                if (k != "mesh_faces" or v) and (k != "max_images" or v is not None)}
     stage(7, "report", _key("report", k_check, recorded), do_report)
     summary["minutes"] = round((time.perf_counter() - t_start) / 60, 1)
     summary["budget_minutes"] = recipe.minutes
