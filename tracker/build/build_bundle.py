@@ -44,7 +44,7 @@ from tracker.build.decimate import SYNTH_FACES
 from tracker.core.errors import UserError
 
 SHARES = {"render": 0.10, "render-det": 0.10, "encoder": 0.38, "heads": 0.10, "detector": 0.30, "check": 0.02}
-MAX_RATE = 50.0  # images per second of a split's time share: the cap on its size (2 workers here: 5-15)
+MAX_RATE = 50.0  # images per second of a split's time share: the cap on its size (2 workers here: ~30)
 MIN_IMAGES = 60
 # the memory a split's image holds at the build's peak, the encoder stage (two crop sets, their
 # training copies, the heads' inputs): measured on a two-object build's 21,300 images (112,199
@@ -58,10 +58,6 @@ BASE_BYTES = 1.5e9
 MEMORY_SHARE = 0.75
 CHECK_IMAGES = 40
 STAGES = ("models", "render", "render-det", "encoder", "detector", "check", "report")
-# each stage's share of the budget, for the estimate of the time left before it starts
-SHARES_BEFORE = {"models": 0.0, "render": SHARES["render"], "render-det": SHARES["render-det"],
-                 "encoder": SHARES["encoder"] + SHARES["heads"], "detector": SHARES["detector"],
-                 "check": SHARES["check"], "report": 0.0}
 
 
 @dataclass
@@ -203,8 +199,10 @@ def build(recipe: Recipe, out_dir, log=print) -> dict:
             summary["stages"][name] = done
             return done
         spent = (time.perf_counter() - t_start) / 60
+        # the stages before it took what they recorded (a split that stopped at its count left time)
+        used = sum(state.d[s].get("seconds", 0.0) for s in STAGES[:i - 1] if s in state.d) / 60
         log(f"[{i}/{len(STAGES)}] {name}: {spent:.1f} min used this run, about "
-            f"{max(0.0, recipe.minutes * (1 - sum(SHARES_BEFORE[s] for s in STAGES[:i - 1])) ):.1f} min of the budget left")
+            f"{max(0.0, recipe.minutes - used):.1f} min of the budget left")
         t = time.perf_counter()
         result = run() or {}
         result["seconds"] = round(time.perf_counter() - t, 1)
