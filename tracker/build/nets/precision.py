@@ -9,7 +9,6 @@ AdamW): float32 68-81 images/s, channels-last 97-110, bfloat16 + channels-last 1
 from __future__ import annotations
 
 import contextlib
-from pathlib import Path
 
 PRECISIONS = ("auto", "bf16", "fp32")
 DEVICES = ("auto", "cpu", "cuda")
@@ -31,16 +30,8 @@ def resolve_device(device: str) -> str:
 
 def native_bf16(cpuinfo: str | None = None) -> bool:
     """True when the CPU advertises bfloat16 arithmetic (Linux /proc/cpuinfo flags)."""
-    if cpuinfo is None:
-        try:
-            cpuinfo = Path("/proc/cpuinfo").read_text()
-        except OSError:
-            return False
-    flags = set()
-    for line in cpuinfo.splitlines():
-        if line.startswith("flags"):
-            flags.update(line.split(":", 1)[-1].split())
-    return bool(flags & {"avx512_bf16", "amx_bf16"})
+    from tracker.core.cpu import cpu_flags
+    return bool(cpu_flags(cpuinfo) & {"avx512_bf16", "amx_bf16"})
 
 
 def resolve(precision: str, device: str = "cpu") -> str:
