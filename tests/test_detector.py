@@ -582,6 +582,8 @@ def test_join_detectors_averages_the_networks_and_quantises_them(tiny_detector_b
     for x in x_cal[:, None]:
         assert np.abs(maps_of(tmp_path / "int8", x)[0, :C] - maps_of(tmp_path / "joined", x)[0, :C]).max() < 0.1
     assert all(d.obj_id in q.detector["classes"] for d in Detector(open_bundle(tmp_path / "int8"))(frame))
+    assert "reduce_range" not in q.detector["int8"]["method"]  # 8-bit weights unless asked
+    _check_requantise(tmp_path, split, x_cal, C, maps_of, quiet)
 
     with pytest.raises(UserError, match="not a folder"):
         join_detectors(tiny_detector_bundle, [second], out_dir=tmp_path / "n", int8_data=tmp_path / "none", **quiet)
@@ -632,6 +634,53 @@ def test_join_detectors_averages_the_networks_and_quantises_them(tiny_detector_b
         join_detectors(inplace, [second], **quiet)
     assert sha256(inplace / "detector.onnx") == before and [p.name for p in inplace.parent.iterdir()] == ["b"]
     Detector(open_bundle(inplace))
+
+
+def _as_written(path, x):
+    """A graph's output with onnxruntime's fusions off: each DequantizeLinear, float Conv and
+    QuantizeLinear run as written, the exact arithmetic that a CPU with int8 dot products (VNNI)
+    reproduces and an AVX2 one reproduces only when no int16 pair sum saturates."""
+    import onnxruntime as ort
+    so = ort.SessionOptions()
+    so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_DISABLE_ALL
+    s = ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+    return s.run(None, {s.get_inputs()[0].name: np.ascontiguousarray(x)})[0]
+
+
+def _check_requantise(tmp_path, split, x_cal, C, maps_of, quiet):
+    """``requantise-detector`` on the int8 bundle that the join test wrote at ``tmp_path / 'int8'``."""
+    import onnx
+    from onnx import numpy_helper
+    from tracker.core.bundle import sha256
+    from tracker.research.detector_ensemble import dequantise_graph, requantise_detector
+    from tracker.runtime.detector import run_graph
+    int8 = tmp_path / "int8" / "detector.onnx"
+    n = dequantise_graph(int8, tmp_path / "float.onnx")
+    graph = onnx.load(str(tmp_path / "float.onnx")).graph
+    assert n["weights"] > 0 and n["activations"] > 0
+    assert not {"QuantizeLinear", "DequantizeLinear"} & {m.op_type for m in graph.node}
+    assert not {onnx.TensorProto.INT8, onnx.TensorProto.UINT8, onnx.TensorProto.INT32} & {t.data_type for t in graph.initializer}
+    # the float32 graph computes what the int8 one does, but for the rounding of activations
+    for x in x_cal[:, None]:
+        assert np.abs(run_graph(tmp_path / "float.onnx", x)[0, :C] - maps_of(tmp_path / "int8", x)[0, :C]).max() < 0.05
+
+    r = requantise_detector(tmp_path / "int8", split, out_dir=tmp_path / "int8b", calibration_images=3, **quiet)
+    was = r.detector["int8"]["requantised_from"]
+    assert was["detector_sha256"] == sha256(int8) and was["calibration_images"] == 3
+    assert "reduce_range" in r.detector["int8"]["method"]
+    new = tmp_path / "int8b" / "detector.onnx"
+    weights = [numpy_helper.to_array(t) for t in onnx.load(str(new)).graph.initializer if t.data_type == onnx.TensorProto.INT8]
+    assert weights and all(np.abs(w).max() <= 64 for w in weights)  # 7 bits: no int16 pair sum overflows
+    # this CPU's int8 path computes about what the graph means (no int16 saturation; activations that
+    # round to the other side of a tie, and uint8 Resize and Add, remain). Measured on AVX2 without
+    # VNNI: 8-bit weights 0.08-0.31 apart, 7-bit 0-0.002
+    for x in x_cal[:, None]:
+        assert np.abs(maps_of(tmp_path / "int8b", x) - _as_written(new, x)).max() < 0.02
+        assert np.abs(maps_of(tmp_path / "int8b", x)[0, :C] - maps_of(tmp_path / "int8", x)[0, :C]).max() < 0.1
+    with pytest.raises(UserError, match="is not int8"):
+        requantise_detector(tmp_path / "joined", split, out_dir=tmp_path / "r1", **quiet)
+    with pytest.raises(UserError, match="not a folder"):
+        requantise_detector(tmp_path / "int8", tmp_path / "none", out_dir=tmp_path / "r2", **quiet)
 
 
 def test_tune_heads_picks_the_trees_weight_on_renders(tiny_bundle, tmp_path):

@@ -48,7 +48,14 @@ def cmd_join_detectors(args) -> int:
     if args.score_thresh is not None:
         extra["score_thresh"] = args.score_thresh
     join_detectors(args.model, args.detectors_from, out_dir=args.out, int8_data=args.int8, mirror=args.mirror,
-                   command="app.py " + " ".join(sys.argv[1:]), **extra)
+                   weight_bits=args.weight_bits, command="app.py " + " ".join(sys.argv[1:]), **extra)
+    return 0
+
+
+def cmd_requantise_detector(args) -> int:
+    from tracker.research.detector_ensemble import requantise_detector
+    extra = {"calibration_images": args.calibration_images} if args.calibration_images else {}
+    requantise_detector(args.model, args.int8, out_dir=args.out, weight_bits=args.weight_bits, command="app.py " + " ".join(sys.argv[1:]), **extra)
     return 0
 
 
@@ -143,9 +150,24 @@ def add_commands(sub, REPO) -> None:
     s.add_argument("--int8", metavar="SPLIT", help="quantise the joined detector to int8, calibrated on this synth split")
     s.add_argument("--calibration-images", type=positive_int,
                    help="images of the --int8 split to calibrate on, spread evenly over it (default: 200)")
+    s.add_argument("--weight-bits", type=int, choices=(7, 8), default=8,
+                   help="bits of the int8 weights: 7 cannot saturate on a CPU without VNNI (AVX2), so the "
+                        "detector computes the same everywhere (default 8)")
     s.add_argument("--score-thresh", type=float, metavar="T",
                    help="run-time score threshold of the joined detector (default: the first member's)")
     s.set_defaults(func=cmd_join_detectors)
+
+    s = sub.add_parser("requantise-detector", help="quantise a bundle's int8 detector again from its float32 graph "
+                                                   "(by default with 7-bit weights)")
+    s.add_argument("--model", required=True, help="bundle folder with an int8 detector")
+    s.add_argument("--int8", required=True, metavar="SPLIT", help="synth split to calibrate on (renders, never "
+                                                                   "the evaluation frames)")
+    s.add_argument("--calibration-images", type=positive_int,
+                   help="images of the split to calibrate on, spread evenly over it (default: 200)")
+    s.add_argument("--weight-bits", type=int, choices=(7, 8), default=7,
+                   help="bits of the int8 weights (default 7: no saturation on a CPU without VNNI)")
+    s.add_argument("--out", help="write the bundle here (default: in place)")
+    s.set_defaults(func=cmd_requantise_detector)
 
     s = sub.add_parser("tune-heads", help="choose on renders how much the distance leans on the trees for detector boxes")
     s.add_argument("--model", required=True, help="bundle folder with a detector")

@@ -145,9 +145,22 @@ def calibration_inputs(split_dir, spec: DetectorSpec, n: int = CALIBRATION_IMAGE
     return np.stack(out)
 
 
-def quantise(float_path, out_path, inputs: np.ndarray) -> None:
+WEIGHT_BITS = (7, 8)
+
+
+def quant_method(weight_bits: int) -> str:
+    return (f"onnxruntime quantize_static: QDQ, per-channel int8 weights{' in 7 bits (reduce_range)' if weight_bits == 7 else ''}, "
+            "uint8 activations, min-max")
+
+
+def quantise(float_path, out_path, inputs: np.ndarray, weight_bits: int = 8) -> None:
     """Static int8 quantisation (QDQ, per-channel int8 weights, uint8 activations, min-max
-    ranges over ``inputs``) with onnxruntime's tools."""
+    ranges over ``inputs``) with onnxruntime's tools. ``weight_bits`` 7 (``reduce_range``):
+    the weights use 7 of the 8 bits, so that a CPU without 8-bit dot products cannot saturate
+    (AVX2 adds pairs of uint8 x int8 products in int16: 2 x 255 x 127 overflows it, 2 x 255 x 64
+    does not; docs/experiments/stop-53.md)."""
+    if weight_bits not in WEIGHT_BITS:
+        raise UserError(f"--weight-bits must be 7 or 8, not {weight_bits}")
     from onnxruntime.quantization import CalibrationDataReader, CalibrationMethod, QuantFormat, QuantType, quantize_static
     from onnxruntime.quantization.shape_inference import quant_pre_process
     name = _onnx().load(str(float_path)).graph.input[0].name
@@ -164,17 +177,141 @@ def quantise(float_path, out_path, inputs: np.ndarray) -> None:
         pre = Path(tmp) / "pre.onnx"
         quant_pre_process(str(float_path), str(pre))
         quantize_static(str(pre), str(out_path), Reader(), quant_format=QuantFormat.QDQ, per_channel=True,
-                        activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
+                        reduce_range=weight_bits == 7, activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
                         calibrate_method=CalibrationMethod.MinMax)
 
 
+def dequantise_graph(int8_path, out_path) -> dict:
+    """The float32 graph of an int8 QDQ detector (as :func:`quantise` writes them): every
+    quantised initializer replaced by its exact float value ``(q - zero_point) * scale``, and
+    every activation's QuantizeLinear / DequantizeLinear pair by a Clip to the range its uint8
+    codes cover (the quantiser folds a ReLU into that range, so the Clip is where it lives
+    now). The result computes what the int8 graph computes, without rounding the activations
+    to 256 levels: the starting point for quantising again (:func:`requantise_detector`).
+    Returns counts of what changed."""
+    onnx = _onnx()
+    from onnx import helper, numpy_helper
+    model = onnx.load(str(int8_path))
+    g = model.graph
+    inits = {t.name: numpy_helper.to_array(t) for t in g.initializer}
+
+    def axis_shaped(scale, zp, x, axis):
+        if scale.ndim == 0:
+            return scale, zp
+        shape = [1] * x.ndim
+        shape[axis] = -1
+        return scale.reshape(shape), zp.reshape(shape)
+
+    nodes, new_inits = [], {}
+    producers = {o: n for n in g.node for o in n.output}
+    weights = clips = 0
+    for n in g.node:
+        if n.op_type == "DequantizeLinear" and n.input[0] in inits:
+            q = inits[n.input[0]]
+            scale = inits[n.input[1]].astype(np.float32)
+            zp = inits[n.input[2]] if len(n.input) > 2 and n.input[2] else np.zeros_like(scale, dtype=q.dtype)
+            axis = next((a.i for a in n.attribute if a.name == "axis"), 1)
+            s, z = axis_shaped(scale, zp, q, axis if axis >= 0 else axis + q.ndim)
+            new_inits[n.output[0]] = ((q.astype(np.int64) - z.astype(np.int64)).astype(np.float32) * s).astype(np.float32)
+            weights += 1
+        elif n.op_type == "DequantizeLinear" and n.input[0] in producers \
+                and producers[n.input[0]].op_type == "QuantizeLinear":
+            q = producers[n.input[0]]
+            scale = float(inits[q.input[1]])
+            zp = inits[q.input[2]] if len(q.input) > 2 and q.input[2] else np.zeros((), np.uint8)
+            info = np.iinfo(zp.dtype)
+            out = n.output[0]
+            new_inits[out + "_lo"] = np.array(scale * (info.min - int(zp)), np.float32)
+            new_inits[out + "_hi"] = np.array(scale * (info.max - int(zp)), np.float32)
+            nodes.append(helper.make_node("Clip", [q.input[0], out + "_lo", out + "_hi"], [out], name=out + "_clip"))
+            clips += 1
+        elif n.op_type == "QuantizeLinear" and n.input[0] not in inits:
+            continue  # its DequantizeLinear became the Clip
+        else:
+            nodes.append(n)
+    left = {n.op_type for n in nodes} & {"QuantizeLinear", "DequantizeLinear"}
+    if left:
+        raise UserError(f"{int8_path}: not an int8 QDQ graph of the kind 'join-detectors --int8' writes")
+    used = {i for n in nodes for i in n.input}
+    kept = [t for t in g.initializer if t.name in used and t.name not in new_inits]
+    kept += [numpy_helper.from_array(v, k) for k, v in new_inits.items() if k in used]
+    graph = helper.make_graph(nodes, g.name, list(g.input), list(g.output), kept)
+    out_model = helper.make_model(graph, opset_imports=[o for o in model.opset_import if o.domain in ("", "ai.onnx")],
+                                  producer_name="autopose requantise-detector")
+    out_model.ir_version = model.ir_version
+    onnx.checker.check_model(out_model)
+    onnx.save(out_model, str(out_path))
+    return {"weights": weights, "activations": clips}
+
+
+def quantise_checked(float_path, out_path, int8_data, spec: DetectorSpec, calibration_images: int, log,
+                     weight_bits: int = 8) -> dict:
+    """:func:`quantise` calibrated on ``calibration_images`` of the ``synth`` split
+    ``int8_data``; returns the manifest's ``int8`` entry (with how far int8 strays from the
+    float graph on a few of those images)."""
+    x_cal = calibration_inputs(int8_data, spec, calibration_images)
+    log(f"int8: calibrating on {len(x_cal)} images of {int8_data}")
+    quantise(float_path, out_path, x_cal, weight_bits)
+    x_check = x_cal[:: max(1, len(x_cal) // 8)][:8]
+    ref, got = run_graph(float_path, x_check), run_graph(out_path, x_check)
+    C = len(spec.classes)
+    q = {"calibration_data": str(int8_data), "calibration_images": int(len(x_cal)),
+         "method": quant_method(weight_bits),
+         "heatmap_max_abs_diff": float(np.abs(got[:, :C] - ref[:, :C]).max()),
+         "box_channels_mean_abs_diff": float(np.abs(got[:, C:] - ref[:, C:]).mean())}
+    log(f"int8 against float on {len(x_check)} calibration images: heatmaps max |diff| "
+        f"{q['heatmap_max_abs_diff']:.3f}, box channels mean |diff| {q['box_channels_mean_abs_diff']:.4f}")
+    return q
+
+
+def requantise_detector(model_dir, int8_data, out_dir=None, calibration_images: int = CALIBRATION_IMAGES,
+                        weight_bits: int = 7, log=print, command: str | None = None) -> Manifest:
+    """Write ``out_dir`` (default: ``model_dir`` in place): ``model_dir``'s bundle whose int8
+    detector is quantised again (:func:`quantise`, ``weight_bits``) from its float32 graph
+    (:func:`dequantise_graph`), calibrated on ``calibration_images`` of the ``synth`` split
+    ``int8_data``; for a bundle whose float networks are gone. The manifest keeps the old
+    ``int8`` entry under ``requantised_from``."""
+    from tracker.core.bundle import open_bundle
+    if not Path(int8_data).is_dir():
+        raise UserError(f"--int8 {int8_data}: not a folder; give a 'synth' split to calibrate the int8 detector on")
+    src = open_bundle(model_dir)
+    if not src.manifest.has_detector:
+        raise UserError(f"{model_dir}: this bundle has no detector; train one with 'app.py train-detector'")
+    d0 = src.manifest.detector
+    if "int8" not in d0:
+        raise UserError(f"{model_dir}: its detector is not int8; quantise it with 'app.py lab join-detectors --int8 SPLIT'")
+    spec = DetectorSpec.from_dict(d0)
+    old = src.path("detector")
+    out = Path(out_dir) if out_dir else src.root
+    with tempfile.TemporaryDirectory() as tmp:
+        flt, final = Path(tmp) / "float.onnx", Path(tmp) / "int8.onnx"
+        n = dequantise_graph(old, flt)
+        log(f"float32 graph of {old}: {n['weights']} quantised tensors restored, {n['activations']} activation "
+            "quantisations made Clips")
+        q = quantise_checked(flt, final, int8_data, spec, calibration_images, log, weight_bits)
+        q["requantised_from"] = {"detector_sha256": sha256(old), **{k: v for k, v in d0["int8"].items()},
+                                 "command": command or "app.py " + " ".join(sys.argv[1:]),
+                                 "created": time.strftime("%Y-%m-%d %H:%M:%S")}
+        m = src.manifest.copy()
+        m.name = out.name
+        m.detector = {**d0, "int8": q}
+        with staged_bundle(src.root, out) as stage:
+            (stage / src.manifest.artefacts["detector"]).write_bytes(final.read_bytes())
+            write_manifest(stage, m)
+    manifest = read_verified_manifest(out)
+    log(f"bundle {out}: its detector quantised again (int8, {weight_bits}-bit weights), "
+        f"{(out / src.manifest.artefacts['detector']).stat().st_size / 1e6:.1f} MB")
+    return manifest
+
+
 def join_detectors(model_dir, others, out_dir=None, int8_data=None, calibration_images: int = CALIBRATION_IMAGES,
-                   score_thresh: float | None = None, mirror: str = "none", log=print, command: str | None = None) -> Manifest:
+                   score_thresh: float | None = None, mirror: str = "none", weight_bits: int = 8, log=print,
+                   command: str | None = None) -> Manifest:
     """Write ``out_dir`` (default: ``model_dir`` in place): ``model_dir``'s bundle whose
     detector averages its own and ``others``' detectors (bundles; only their detectors are
     read), on the image or its mirror image as ``mirror`` says (``member_views``; with
     ``both`` one network can join itself). With ``int8_data`` (a ``synth`` split) the joined graph is quantised to int8,
-    calibrated on ``calibration_images`` of its images. ``score_thresh``: the run-time
+    calibrated on ``calibration_images`` of its images, its weights in ``weight_bits`` (:func:`quantise`). ``score_thresh``: the run-time
     threshold of the joined detector (default: the first member's); averaged heatmaps peak
     lower than each member's where the members' peaks do not coincide."""
     others = list(others or [])
@@ -206,19 +343,8 @@ def join_detectors(model_dir, others, out_dir=None, int8_data=None, calibration_
                 "created": time.strftime("%Y-%m-%d %H:%M:%S")}
         final = joined
         if int8_data is not None:
-            x_cal = calibration_inputs(int8_data, spec0, calibration_images)
-            log(f"int8: calibrating on {len(x_cal)} images of {int8_data}")
             final = Path(tmp) / "int8.onnx"
-            quantise(joined, final, x_cal)
-            x_check = x_cal[:: max(1, len(x_cal) // 8)][:8]
-            ref, got = run_graph(joined, x_check), run_graph(final, x_check)
-            C = len(spec0.classes)
-            q = {"calibration_data": str(int8_data), "calibration_images": int(len(x_cal)),
-                 "method": "onnxruntime quantize_static: QDQ, per-channel int8 weights, uint8 activations, min-max",
-                 "heatmap_max_abs_diff": float(np.abs(got[:, :C] - ref[:, :C]).max()),
-                 "box_channels_mean_abs_diff": float(np.abs(got[:, C:] - ref[:, C:]).mean())}
-            log(f"int8 against float on {len(x_check)} calibration images: heatmaps max |diff| "
-                f"{q['heatmap_max_abs_diff']:.3f}, box channels mean |diff| {q['box_channels_mean_abs_diff']:.4f}")
+            q = quantise_checked(joined, final, int8_data, spec0, calibration_images, log, weight_bits)
         m = src.manifest.copy()
         m.name = out.name
         m.detector = {**d0, "ensemble": info, **({"int8": q} if int8_data is not None else {})}
