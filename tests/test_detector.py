@@ -595,6 +595,12 @@ def test_join_detectors_averages_the_networks_and_quantises_them(tiny_detector_b
         join_detectors(tiny_detector_bundle, [tiny_bundle], out_dir=tmp_path / "none", **quiet)
     with pytest.raises(UserError, match="nothing to join"):
         join_detectors(tiny_detector_bundle, [], out_dir=tmp_path / "alone", **quiet)
+    # one network alone, quantised: int8 that follows that network
+    one = join_detectors(tiny_detector_bundle, [], out_dir=tmp_path / "one8", int8_data=split, calibration_images=3,
+                         weight_bits=7, **quiet)
+    assert one.detector["ensemble"]["members"] == 1 and "reduce_range" in one.detector["int8"]["method"]
+    for x in x_cal[:, None]:
+        assert np.abs(maps_of(tmp_path / "one8", x)[0, :C] - maps_of(tiny_detector_bundle, x)[0, :C]).max() < 0.1
 
     # one network and its mirror image: the joined output is mirror-symmetric (x offsets turned)
     mm = join_detectors(tiny_detector_bundle, [], out_dir=tmp_path / "mirror", mirror="both", **quiet)

@@ -55,7 +55,8 @@ def cmd_join_detectors(args) -> int:
 def cmd_requantise_detector(args) -> int:
     from tracker.research.detector_ensemble import requantise_detector
     extra = {"calibration_images": args.calibration_images} if args.calibration_images else {}
-    requantise_detector(args.model, args.int8, out_dir=args.out, weight_bits=args.weight_bits, command="app.py " + " ".join(sys.argv[1:]), **extra)
+    requantise_detector(args.model, args.int8, out_dir=args.out, weight_bits=args.weight_bits,
+                        command="app.py " + " ".join(sys.argv[1:]), **extra)
     return 0
 
 
@@ -140,7 +141,8 @@ def add_commands(sub, REPO) -> None:
               "bundles with the same encoder (e.g. from 'refit-heads --out DIR') whose heads join")
     s.set_defaults(func=cmd_join_heads)
 
-    s = sub.add_parser("join-detectors", help="one detector averaging the detectors of several bundles (optionally int8)")
+    s = sub.add_parser("join-detectors", help="one detector averaging the detectors of several bundles (optionally int8), "
+                                                "or one network quantised to int8")
     add_join(s, "bundle folder that gets the joined detector (its own is the first member)", "detectors_from",
               "bundles whose detectors (same classes, input and normalisation) join", required=False)
     s.add_argument("--mirror", choices=("none", "both", "alternate"), default="none",

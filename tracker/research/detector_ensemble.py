@@ -149,8 +149,8 @@ WEIGHT_BITS = (7, 8)
 
 
 def quant_method(weight_bits: int) -> str:
-    return (f"onnxruntime quantize_static: QDQ, per-channel int8 weights{' in 7 bits (reduce_range)' if weight_bits == 7 else ''}, "
-            "uint8 activations, min-max")
+    bits = " in 7 bits (reduce_range)" if weight_bits == 7 else ""
+    return f"onnxruntime quantize_static: QDQ, per-channel int8 weights{bits}, uint8 activations, min-max"
 
 
 def quantise(float_path, out_path, inputs: np.ndarray, weight_bits: int = 8) -> None:
@@ -289,7 +289,7 @@ def requantise_detector(model_dir, int8_data, out_dir=None, calibration_images: 
         log(f"float32 graph of {old}: {n['weights']} quantised tensors restored, {n['activations']} activation "
             "quantisations made Clips")
         q = quantise_checked(flt, final, int8_data, spec, calibration_images, log, weight_bits)
-        q["requantised_from"] = {"detector_sha256": sha256(old), **{k: v for k, v in d0["int8"].items()},
+        q["requantised_from"] = {"detector_sha256": sha256(old), **d0["int8"],
                                  "command": command or "app.py " + " ".join(sys.argv[1:]),
                                  "created": time.strftime("%Y-%m-%d %H:%M:%S")}
         m = src.manifest.copy()
@@ -310,15 +310,17 @@ def join_detectors(model_dir, others, out_dir=None, int8_data=None, calibration_
     """Write ``out_dir`` (default: ``model_dir`` in place): ``model_dir``'s bundle whose
     detector averages its own and ``others``' detectors (bundles; only their detectors are
     read), on the image or its mirror image as ``mirror`` says (``member_views``; with
-    ``both`` one network can join itself). With ``int8_data`` (a ``synth`` split) the joined graph is quantised to int8,
-    calibrated on ``calibration_images`` of its images, its weights in ``weight_bits`` (:func:`quantise`). ``score_thresh``: the run-time
-    threshold of the joined detector (default: the first member's); averaged heatmaps peak
+    ``both`` one network can join itself; with ``int8_data`` and nothing else, one network is
+    only quantised). With ``int8_data`` (a ``synth`` split) the joined graph is quantised to
+    int8, calibrated on ``calibration_images`` of its images, its weights in ``weight_bits``
+    (:func:`quantise`). ``score_thresh``: the run-time threshold of the joined detector
+    (default: the first member's); averaged heatmaps peak
     lower than each member's where the members' peaks do not coincide."""
     others = list(others or [])
     views = member_views(1 + len(others), mirror)
-    if not others and mirror != "both":
-        raise UserError("nothing to join: name other bundles with --from, or average the detector with its "
-                        "mirror image (--mirror both)")
+    if not others and mirror != "both" and int8_data is None:
+        raise UserError("nothing to join: name other bundles with --from, average the detector with its "
+                        "mirror image (--mirror both), or quantise it alone (--int8 SPLIT)")
     if score_thresh is not None and not 0 < score_thresh < 1:
         raise UserError(f"--score-thresh must lie between 0 and 1, not {score_thresh}")
     if int8_data is not None and not Path(int8_data).is_dir():
