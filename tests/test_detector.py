@@ -601,6 +601,15 @@ def test_join_detectors_averages_the_networks_and_quantises_them(tiny_detector_b
     assert one.detector["ensemble"]["members"] == 1 and "reduce_range" in one.detector["int8"]["method"]
     for x in x_cal[:, None]:
         assert np.abs(maps_of(tmp_path / "one8", x)[0, :C] - maps_of(tiny_detector_bundle, x)[0, :C]).max() < 0.1
+    # or with its weights stored in float16: about half the file, float32 arithmetic, outputs as before
+    hw = join_detectors(tiny_detector_bundle, [], out_dir=tmp_path / "half", half=True, **quiet).detector["half_weights"]
+    assert hw["tensors"] > 0 and hw["max_abs_diff_on_noise"] < 0.01
+    size = lambda b: (b / "detector.onnx").stat().st_size  # noqa: E731
+    assert size(tmp_path / "half") < 0.6 * size(tiny_detector_bundle)
+    for x in x_cal[:, None]:
+        assert np.abs(maps_of(tmp_path / "half", x) - maps_of(tiny_detector_bundle, x)).max() < 0.01
+    with pytest.raises(UserError, match="exclude each other"):
+        join_detectors(tiny_detector_bundle, [], out_dir=tmp_path / "hq", half=True, int8_data=split, **quiet)
 
     # one network and its mirror image: the joined output is mirror-symmetric (x offsets turned)
     mm = join_detectors(tiny_detector_bundle, [], out_dir=tmp_path / "mirror", mirror="both", **quiet)

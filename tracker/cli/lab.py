@@ -48,7 +48,8 @@ def cmd_join_detectors(args) -> int:
     if args.score_thresh is not None:
         extra["score_thresh"] = args.score_thresh
     join_detectors(args.model, args.detectors_from, out_dir=args.out, int8_data=args.int8, mirror=args.mirror,
-                   weight_bits=args.weight_bits, command="app.py " + " ".join(sys.argv[1:]), **extra)
+                   weight_bits=args.weight_bits, half=args.half_weights, command="app.py " + " ".join(sys.argv[1:]),
+                   **extra)
     return 0
 
 
@@ -141,8 +142,8 @@ def add_commands(sub, REPO) -> None:
               "bundles with the same encoder (e.g. from 'refit-heads --out DIR') whose heads join")
     s.set_defaults(func=cmd_join_heads)
 
-    s = sub.add_parser("join-detectors", help="one detector averaging the detectors of several bundles (optionally int8), "
-                                                "or one network quantised to int8")
+    s = sub.add_parser("join-detectors", help="one detector averaging the detectors of several bundles (optionally int8 "
+                                                "or with float16 weights), or one network stored so")
     add_join(s, "bundle folder that gets the joined detector (its own is the first member)", "detectors_from",
               "bundles whose detectors (same classes, input and normalisation) join", required=False)
     s.add_argument("--mirror", choices=("none", "both", "alternate"), default="none",
@@ -155,6 +156,9 @@ def add_commands(sub, REPO) -> None:
     s.add_argument("--weight-bits", type=int, choices=(7, 8), default=8,
                    help="bits of the int8 weights: 7 cannot saturate on a CPU without VNNI (AVX2), so the "
                         "detector computes the same everywhere (default 8)")
+    s.add_argument("--half-weights", action="store_true",
+                   help="store the joined graph's weights in float16, computed in float32 (half the file, the "
+                        "same numbers on every CPU; instead of --int8)")
     s.add_argument("--score-thresh", type=float, metavar="T",
                    help="run-time score threshold of the joined detector (default: the first member's)")
     s.set_defaults(func=cmd_join_detectors)

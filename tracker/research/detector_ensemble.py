@@ -181,6 +181,36 @@ def quantise(float_path, out_path, inputs: np.ndarray, weight_bits: int = 8) -> 
                         calibrate_method=CalibrationMethod.MinMax)
 
 
+def half_weights(float_path, out_path, min_size: int = 64) -> int:
+    """The float32 graph with its weights (initializers of ``min_size`` values or more) stored
+    in float16, each cast back to float32 by a Cast node that onnxruntime folds away when it
+    loads the graph: half the file, float32 arithmetic (so the same numbers on every CPU, unlike
+    int8), weights rounded to float16. Returns how many tensors were halved."""
+    onnx = _onnx()
+    from onnx import TensorProto, helper, numpy_helper
+    model = onnx.load(str(float_path))
+    g = model.graph
+    kept, casts = [], []
+    for t in g.initializer:
+        a = numpy_helper.to_array(t)
+        if a.dtype != np.float32 or a.size < min_size:
+            kept.append(t)
+            continue
+        h = a.astype(np.float16)
+        if not np.isfinite(h).all():
+            raise UserError(f"{float_path}: weight {t.name} does not fit float16; keep the float32 graph")
+        kept.append(numpy_helper.from_array(h, t.name + "_fp16"))
+        casts.append(helper.make_node("Cast", [t.name + "_fp16"], [t.name], to=TensorProto.FLOAT, name=t.name + "_cast"))
+    nodes = casts + list(g.node)
+    del g.initializer[:]
+    g.initializer.extend(kept)
+    del g.node[:]
+    g.node.extend(nodes)
+    onnx.checker.check_model(model)
+    onnx.save(model, str(out_path))
+    return len(casts)
+
+
 def dequantise_graph(int8_path, out_path) -> dict:
     """The float32 graph of an int8 QDQ detector (as :func:`quantise` writes them): every
     quantised initializer replaced by its exact float value ``(q - zero_point) * scale``, and
@@ -305,22 +335,26 @@ def requantise_detector(model_dir, int8_data, out_dir=None, calibration_images: 
 
 
 def join_detectors(model_dir, others, out_dir=None, int8_data=None, calibration_images: int = CALIBRATION_IMAGES,
-                   score_thresh: float | None = None, mirror: str = "none", weight_bits: int = 8, log=print,
-                   command: str | None = None) -> Manifest:
+                   score_thresh: float | None = None, mirror: str = "none", weight_bits: int = 8,
+                   half: bool = False, log=print, command: str | None = None) -> Manifest:
     """Write ``out_dir`` (default: ``model_dir`` in place): ``model_dir``'s bundle whose
     detector averages its own and ``others``' detectors (bundles; only their detectors are
     read), on the image or its mirror image as ``mirror`` says (``member_views``; with
-    ``both`` one network can join itself; with ``int8_data`` and nothing else, one network is
-    only quantised). With ``int8_data`` (a ``synth`` split) the joined graph is quantised to
-    int8, calibrated on ``calibration_images`` of its images, its weights in ``weight_bits``
-    (:func:`quantise`). ``score_thresh``: the run-time threshold of the joined detector
-    (default: the first member's); averaged heatmaps peak
-    lower than each member's where the members' peaks do not coincide."""
+    ``both`` one network can join itself; with ``int8_data`` or ``half`` and nothing else, one
+    network is only quantised or halved). With ``int8_data`` (a ``synth`` split) the joined
+    graph is quantised to int8, calibrated on ``calibration_images`` of its images, its
+    weights in ``weight_bits`` (:func:`quantise`); with ``half`` its weights are stored in
+    float16 (:func:`half_weights`). ``score_thresh``: the run-time threshold of the joined
+    detector (default: the first member's); averaged heatmaps peak lower than each member's
+    where the members' peaks do not coincide."""
     others = list(others or [])
     views = member_views(1 + len(others), mirror)
-    if not others and mirror != "both" and int8_data is None:
+    if not others and mirror != "both" and int8_data is None and not half:
         raise UserError("nothing to join: name other bundles with --from, average the detector with its "
-                        "mirror image (--mirror both), or quantise it alone (--int8 SPLIT)")
+                        "mirror image (--mirror both), or store it alone as int8 (--int8 SPLIT) or with "
+                        "float16 weights (--half-weights)")
+    if half and int8_data is not None:
+        raise UserError("--half-weights and --int8 exclude each other: int8 weights are smaller still")
     if score_thresh is not None and not 0 < score_thresh < 1:
         raise UserError(f"--score-thresh must lie between 0 and 1, not {score_thresh}")
     if int8_data is not None and not Path(int8_data).is_dir():
@@ -347,9 +381,16 @@ def join_detectors(model_dir, others, out_dir=None, int8_data=None, calibration_
         if int8_data is not None:
             final = Path(tmp) / "int8.onnx"
             q = quantise_checked(joined, final, int8_data, spec0, calibration_images, log, weight_bits)
+        if half:
+            final = Path(tmp) / "half.onnx"
+            x = np.random.default_rng(0).uniform(-2, 2, (2, 3, spec0.input_h, spec0.input_w)).astype(np.float32)
+            hw = {"tensors": half_weights(joined, final), "storage": "float16, cast to float32 on loading",
+                  "max_abs_diff_on_noise": float(np.abs(run_graph(final, x) - run_graph(joined, x)).max())}
+            log(f"weights in float16: {hw['tensors']} tensors, outputs {hw['max_abs_diff_on_noise']:.2e} from float32's")
         m = src.manifest.copy()
         m.name = out.name
-        m.detector = {**d0, "ensemble": info, **({"int8": q} if int8_data is not None else {})}
+        m.detector = {**d0, "ensemble": info, **({"int8": q} if int8_data is not None else {}),
+                      **({"half_weights": hw} if half else {})}
         if score_thresh is not None:
             m.detector["score_thresh"] = float(score_thresh)
         with staged_bundle(src.root, out) as stage:
@@ -359,5 +400,5 @@ def join_detectors(model_dir, others, out_dir=None, int8_data=None, calibration_
     size = (out / src.manifest.artefacts["detector"]).stat().st_size / 1e6
     seen = {"none": "", "both": " on the image and its mirror image", "alternate": ", the image and its mirror image by turns"}
     log(f"bundle {out}: a detector averaging {len(members)} network{'s' if len(members) > 1 else ''}{seen[mirror]}"
-        + (" (int8)" if int8_data is not None else "") + f", {size:.1f} MB")
+        + (" (int8)" if int8_data is not None else " (weights in float16)" if half else "") + f", {size:.1f} MB")
     return manifest
