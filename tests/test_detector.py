@@ -610,6 +610,12 @@ def test_join_detectors_averages_the_networks_and_quantises_them(tiny_detector_b
         assert np.abs(maps_of(tmp_path / "half", x) - maps_of(tiny_detector_bundle, x)).max() < 0.01
     with pytest.raises(UserError, match="exclude each other"):
         join_detectors(tiny_detector_bundle, [], out_dir=tmp_path / "hq", half=True, int8_data=split, **quiet)
+    with pytest.raises(UserError, match="give --int8 SPLIT too"):
+        join_detectors(tiny_detector_bundle, [], out_dir=tmp_path / "h7", half=True, weight_bits=7, **quiet)
+    with pytest.raises(UserError, match="must be 7 or 8"):
+        join_detectors(tiny_detector_bundle, [], out_dir=tmp_path / "q6", int8_data=split, weight_bits=6, **quiet)
+    with pytest.raises(UserError, match="alternate needs two networks"):
+        join_detectors(tiny_detector_bundle, [], out_dir=tmp_path / "ha", half=True, mirror="alternate", **quiet)
 
     # one network and its mirror image: the joined output is mirror-symmetric (x offsets turned)
     mm = join_detectors(tiny_detector_bundle, [], out_dir=tmp_path / "mirror", mirror="both", **quiet)
@@ -681,7 +687,7 @@ def _check_requantise(tmp_path, split, x_cal, C, maps_of, quiet):
 
     r = requantise_detector(tmp_path / "int8", split, out_dir=tmp_path / "int8b", calibration_images=3, **quiet)
     was = r.detector["int8"]["requantised_from"]
-    assert was["detector_sha256"] == sha256(int8) and was["calibration_images"] == 3
+    assert was["detector_sha256"] == sha256(int8) and was["calibration_images"] == 3 and "command" in r.detector["int8"]
     assert "reduce_range" in r.detector["int8"]["method"]
     new = tmp_path / "int8b" / "detector.onnx"
     weights = [numpy_helper.to_array(t) for t in onnx.load(str(new)).graph.initializer if t.data_type == onnx.TensorProto.INT8]

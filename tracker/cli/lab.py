@@ -154,11 +154,11 @@ def add_commands(sub, REPO) -> None:
     s.add_argument("--calibration-images", type=positive_int,
                    help="images of the --int8 split to calibrate on, spread evenly over it (default: 200)")
     s.add_argument("--weight-bits", type=int, choices=(7, 8), default=8,
-                   help="bits of the int8 weights: 7 cannot saturate on a CPU without VNNI (AVX2), so the "
-                        "detector computes the same everywhere (default 8)")
+                   help="bits of the int8 weights (with --int8): 7 cannot saturate the int16 sums of a CPU "
+                        "without VNNI (AVX2), which 8 can (default 8)")
     s.add_argument("--half-weights", action="store_true",
-                   help="store the joined graph's weights in float16, computed in float32 (half the file, the "
-                        "same numbers on every CPU; instead of --int8)")
+                   help="store the joined graph's weights in float16, computed in float32 (half the file, no "
+                        "int8 arithmetic; instead of --int8)")
     s.add_argument("--score-thresh", type=float, metavar="T",
                    help="run-time score threshold of the joined detector (default: the first member's)")
     s.set_defaults(func=cmd_join_detectors)
@@ -171,7 +171,7 @@ def add_commands(sub, REPO) -> None:
     s.add_argument("--calibration-images", type=positive_int,
                    help="images of the split to calibrate on, spread evenly over it (default: 200)")
     s.add_argument("--weight-bits", type=int, choices=(7, 8), default=7,
-                   help="bits of the int8 weights (default 7: no saturation on a CPU without VNNI)")
+                   help="bits of the int8 weights (default 7: no int16 saturation on a CPU without VNNI)")
     s.add_argument("--out", help="write the bundle here (default: in place)")
     s.set_defaults(func=cmd_requantise_detector)
 

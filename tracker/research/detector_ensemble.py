@@ -148,6 +148,11 @@ def calibration_inputs(split_dir, spec: DetectorSpec, n: int = CALIBRATION_IMAGE
 WEIGHT_BITS = (7, 8)
 
 
+def _check_bits(weight_bits: int) -> None:
+    if weight_bits not in WEIGHT_BITS:
+        raise UserError(f"--weight-bits must be 7 or 8, not {weight_bits}")
+
+
 def quant_method(weight_bits: int) -> str:
     bits = " in 7 bits (reduce_range)" if weight_bits == 7 else ""
     return f"onnxruntime quantize_static: QDQ, per-channel int8 weights{bits}, uint8 activations, min-max"
@@ -159,8 +164,7 @@ def quantise(float_path, out_path, inputs: np.ndarray, weight_bits: int = 8) -> 
     the weights use 7 of the 8 bits, so that a CPU without 8-bit dot products cannot saturate
     (AVX2 adds pairs of uint8 x int8 products in int16: 2 x 255 x 127 overflows it, 2 x 255 x 64
     does not; docs/experiments/stop-53.md)."""
-    if weight_bits not in WEIGHT_BITS:
-        raise UserError(f"--weight-bits must be 7 or 8, not {weight_bits}")
+    _check_bits(weight_bits)
     from onnxruntime.quantization import CalibrationDataReader, CalibrationMethod, QuantFormat, QuantType, quantize_static
     from onnxruntime.quantization.shape_inference import quant_pre_process
     name = _onnx().load(str(float_path)).graph.input[0].name
@@ -184,8 +188,9 @@ def quantise(float_path, out_path, inputs: np.ndarray, weight_bits: int = 8) -> 
 def half_weights(float_path, out_path, min_size: int = 64) -> int:
     """The float32 graph with its weights (initializers of ``min_size`` values or more) stored
     in float16, each cast back to float32 by a Cast node that onnxruntime folds away when it
-    loads the graph: half the file, float32 arithmetic (so the same numbers on every CPU, unlike
-    int8), weights rounded to float16. Returns how many tensors were halved."""
+    loads the graph: half the file, float32 arithmetic (no int8 path whose sums differ between
+    CPUs; float32 kernels still differ in the last bits), weights rounded to float16. Returns
+    how many tensors were halved."""
     onnx = _onnx()
     from onnx import TensorProto, helper, numpy_helper
     model = onnx.load(str(float_path))
@@ -235,7 +240,10 @@ def dequantise_graph(int8_path, out_path) -> dict:
     nodes, new_inits = [], {}
     producers = {o: n for n in g.node for o in n.output}
     weights = clips = 0
+    not_qdq = UserError(f"{int8_path}: not an int8 QDQ graph of the kind 'join-detectors --int8' writes")
     for n in g.node:
+        if n.op_type in ("QuantizeLinear", "DequantizeLinear") and not all(i in inits for i in n.input[1:] if i):
+            raise not_qdq  # scales and zero points computed in the graph
         if n.op_type == "DequantizeLinear" and n.input[0] in inits:
             q = inits[n.input[0]]
             scale = inits[n.input[1]].astype(np.float32)
@@ -259,9 +267,9 @@ def dequantise_graph(int8_path, out_path) -> dict:
             continue  # its DequantizeLinear became the Clip
         else:
             nodes.append(n)
-    left = {n.op_type for n in nodes} & {"QuantizeLinear", "DequantizeLinear"}
-    if left:
-        raise UserError(f"{int8_path}: not an int8 QDQ graph of the kind 'join-detectors --int8' writes")
+    if {n.op_type for n in nodes} & {"QuantizeLinear", "DequantizeLinear"} or any(n.domain not in ("", "ai.onnx")
+                                                                                  for n in nodes):
+        raise not_qdq
     used = {i for n in nodes for i in n.input}
     kept = [t for t in g.initializer if t.name in used and t.name not in new_inits]
     kept += [numpy_helper.from_array(v, k) for k, v in new_inits.items() if k in used]
@@ -302,6 +310,7 @@ def requantise_detector(model_dir, int8_data, out_dir=None, calibration_images: 
     ``int8_data``; for a bundle whose float networks are gone. The manifest keeps the old
     ``int8`` entry under ``requantised_from``."""
     from tracker.core.bundle import open_bundle
+    _check_bits(weight_bits)
     if not Path(int8_data).is_dir():
         raise UserError(f"--int8 {int8_data}: not a folder; give a 'synth' split to calibrate the int8 detector on")
     src = open_bundle(model_dir)
@@ -319,9 +328,8 @@ def requantise_detector(model_dir, int8_data, out_dir=None, calibration_images: 
         log(f"float32 graph of {old}: {n['weights']} quantised tensors restored, {n['activations']} activation "
             "quantisations made Clips")
         q = quantise_checked(flt, final, int8_data, spec, calibration_images, log, weight_bits)
-        q["requantised_from"] = {"detector_sha256": sha256(old), **d0["int8"],
-                                 "command": command or "app.py " + " ".join(sys.argv[1:]),
-                                 "created": time.strftime("%Y-%m-%d %H:%M:%S")}
+        q.update(command=command or "app.py " + " ".join(sys.argv[1:]), created=time.strftime("%Y-%m-%d %H:%M:%S"),
+                 requantised_from={"detector_sha256": sha256(old), **d0["int8"]})
         m = src.manifest.copy()
         m.name = out.name
         m.detector = {**d0, "int8": q}
@@ -353,8 +361,14 @@ def join_detectors(model_dir, others, out_dir=None, int8_data=None, calibration_
         raise UserError("nothing to join: name other bundles with --from, average the detector with its "
                         "mirror image (--mirror both), or store it alone as int8 (--int8 SPLIT) or with "
                         "float16 weights (--half-weights)")
+    if not others and mirror == "alternate":
+        raise UserError("--mirror alternate needs two networks or more (--from); one network sees its mirror "
+                        "image with --mirror both")
     if half and int8_data is not None:
         raise UserError("--half-weights and --int8 exclude each other: int8 weights are smaller still")
+    _check_bits(weight_bits)
+    if weight_bits != 8 and int8_data is None:
+        raise UserError(f"--weight-bits {weight_bits} is for int8 weights: give --int8 SPLIT too")
     if score_thresh is not None and not 0 < score_thresh < 1:
         raise UserError(f"--score-thresh must lie between 0 and 1, not {score_thresh}")
     if int8_data is not None and not Path(int8_data).is_dir():
