@@ -131,3 +131,26 @@ def test_cached_decimation_renders_the_same_pixels_and_survives_a_broken_cache(t
     assert np.array_equal(again.vertices, fresh.vertices)
     dec.decimate_mesh(mesh, 2000, cache=True)
     assert len(list((tmp_path / "cache").glob("decimated_*.npz"))) == 2
+
+
+def test_cached_hull_gives_the_hull_and_diameter_and_reads_them_back(lmo_models, tmp_path, monkeypatch):
+    import tracker.core.meshes as meshes
+    from tracker.core.meshes import cached_hull, diameter, hull_vertices
+    monkeypatch.setenv("AUTOPOSE_CACHE", str(tmp_path / "cache"))
+    v = np.asarray(lmo_models[8].mesh.vertices)
+    hull, d = cached_hull(v)
+    assert np.array_equal(hull, hull_vertices(v)) and d == diameter(v)
+    assert len(list((tmp_path / "cache").glob("hull_*.npz"))) == 1
+
+    calls = []
+    real = meshes.ConvexHull
+    monkeypatch.setattr(meshes, "ConvexHull", lambda *a, **k: calls.append(1) or real(*a, **k))
+    again, d2 = cached_hull(v.copy())  # the same bytes: read back, not computed
+    assert np.array_equal(again, hull) and d2 == d and not calls
+    cached_hull(v * 1.001)  # other vertices: another entry
+    assert len(calls) == 1 and len(list((tmp_path / "cache").glob("hull_*.npz"))) == 2
+    for f in (tmp_path / "cache").glob("hull_*.npz"):
+        f.write_bytes(b"half a file")  # damaged: computed again
+    assert np.array_equal(cached_hull(v)[0], hull) and len(calls) == 2
+    flat = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], float)  # degenerate: all vertices
+    assert len(cached_hull(flat)[0]) == 4 and cached_hull(flat)[1] == pytest.approx(np.sqrt(2))

@@ -129,7 +129,7 @@ def _init_worker(cfg_dict: dict, models: dict | None = None):
     import warnings
     warnings.simplefilter("ignore")  # a colourless mesh warns once in the parent, not per worker
     cv2.setNumThreads(1)
-    from tracker.core.meshes import diameter, hull_vertices, load_models
+    from tracker.core.meshes import cached_hull, load_models
     from tracker.runtime.render import Renderer
     cfg = SynthConfig(**cfg_dict)
     if models is None:
@@ -152,7 +152,8 @@ def _init_worker(cfg_dict: dict, models: dict | None = None):
     # the hull's vertices give the same extremes as all of them (a resting height, a projected
     # box: a linear or linear-fractional function's extreme over a convex body is at a vertex)
     # at a fraction of the points (the full driller: 12,655; its hull: ~1,000)
-    hull = {k: hull_vertices(v) for k, v in verts.items()}
+    hulls = {k: cached_hull(v) for k, v in verts.items()}
+    hull = {k: h for k, (h, _) in hulls.items()}
     _W.update(
         cfg=cfg,
         K=np.asarray(cfg.K, dtype=np.float64),
@@ -160,7 +161,7 @@ def _init_worker(cfg_dict: dict, models: dict | None = None):
         verts=verts,
         hull=hull,
         shadow_verts={k: v[:: max(1, len(v) // SHADOW_POINTS)] for k, v in verts.items()},
-        radius={k: diameter(v) / 2 for k, v in hull.items()},
+        radius={k: d / 2 for k, (_, d) in hulls.items()},
         n_dis=len(dis),
         scene=Renderer(cfg.width, cfg.height, meshes),
         crop=Renderer(cfg.crop_size, cfg.crop_size, targets),
