@@ -156,10 +156,14 @@ def hull_vertices(vertices: np.ndarray) -> np.ndarray:
     """The vertices on the convex hull (all of them for a degenerate, flat model): the same
     extremes of any linear or linear-fractional function (a projection) as all vertices."""
     v = np.asarray(vertices, dtype=np.float64)
+    return v[_hull_index(v)]
+
+
+def _hull_index(v: np.ndarray) -> np.ndarray:
     try:
-        return v[ConvexHull(v).vertices]
+        return ConvexHull(v).vertices
     except Exception:  # degenerate (flat) models: all vertices
-        return v
+        return np.arange(len(v))
 
 
 def diameter(vertices: np.ndarray) -> float:
@@ -186,10 +190,7 @@ def cached_hull(vertices: np.ndarray) -> tuple[np.ndarray, float]:
             return v[z["index"]], float(z["diameter"])
     except Exception:  # no entry, or a damaged one
         pass
-    try:
-        index = ConvexHull(v).vertices
-    except Exception:  # degenerate (flat) models: all vertices
-        index = np.arange(len(v))
+    index = _hull_index(v)
     hull = v[index]
     d = float(pdist(hull).max()) if len(hull) > 1 else 0.0
     tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp.npz")
