@@ -87,11 +87,16 @@ def read_cached_mesh(path: Path):
 
 
 def write_cached_mesh(path: Path, mesh) -> None:
-    """Store a mesh's vertices, faces and vertex colours as a cache entry, atomically (parallel
-    workers never read half a file); an unwritable cache is skipped."""
+    """Store a mesh's vertices, faces and vertex colours as a cache entry (:func:`_save_cache_entry`)."""
     arrays = {"vertices": np.asarray(mesh.vertices, np.float64), "faces": np.asarray(mesh.faces, np.int64)}
     if getattr(mesh.visual, "kind", None) == "vertex":
         arrays["colours"] = np.asarray(mesh.visual.vertex_colors, np.uint8)
+    _save_cache_entry(path, arrays)
+
+
+def _save_cache_entry(path: Path, arrays: dict) -> None:
+    """``arrays`` as the .npz cache entry ``path``, atomically (parallel workers never read half
+    a file); an unwritable cache is skipped."""
     tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp.npz")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -193,13 +198,7 @@ def cached_hull(vertices: np.ndarray) -> tuple[np.ndarray, float]:
     index = _hull_index(v)
     hull = v[index]
     d = float(pdist(hull).max()) if len(hull) > 1 else 0.0
-    tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp.npz")
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        np.savez(tmp, index=index.astype(np.int64), diameter=np.float64(d))
-        os.replace(tmp, path)
-    except OSError:
-        tmp.unlink(missing_ok=True)
+    _save_cache_entry(path, {"index": index.astype(np.int64), "diameter": np.float64(d)})
     return hull, d
 
 

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from tracker.core.bundle import read_verified_manifest, sha256, staged_bundle, write_manifest
-from tracker.runtime.detector import DetectorSpec, float_detector, letterbox, normalise, run_graph
+from tracker.runtime.detector import DetectorSpec, bundle_with_detector, float_detector, letterbox, normalise, run_graph
 from tracker.core.errors import UserError
 from tracker.core.manifest import Manifest
 
@@ -302,6 +302,24 @@ def quantise_checked(float_path, out_path, int8_data, spec: DetectorSpec, calibr
     return q
 
 
+def _check_split(int8_data) -> None:
+    if not Path(int8_data).is_dir():
+        raise UserError(f"--int8 {int8_data}: not a folder; give a 'synth' split to calibrate the int8 detector on")
+
+
+def _store_detector(src, out: Path, graph: Path, detector: dict) -> tuple[Manifest, float]:
+    """Write ``out``: bundle ``src`` with ``graph`` as its detector and ``detector`` as the
+    manifest's entry, staged and re-hashed (in place when ``out`` is ``src``'s folder); returns
+    the verified manifest and the graph's size in MB."""
+    m = src.manifest.copy()
+    m.name = out.name
+    m.detector = detector
+    with staged_bundle(src.root, out) as stage:
+        (stage / src.manifest.artefacts["detector"]).write_bytes(graph.read_bytes())
+        write_manifest(stage, m)
+    return read_verified_manifest(out), (out / src.manifest.artefacts["detector"]).stat().st_size / 1e6
+
+
 def requantise_detector(model_dir, int8_data, out_dir=None, calibration_images: int = CALIBRATION_IMAGES,
                         weight_bits: int = 7, log=print, command: str | None = None) -> Manifest:
     """Write ``out_dir`` (default: ``model_dir`` in place): ``model_dir``'s bundle whose int8
@@ -309,13 +327,9 @@ def requantise_detector(model_dir, int8_data, out_dir=None, calibration_images: 
     (:func:`dequantise_graph`), calibrated on ``calibration_images`` of the ``synth`` split
     ``int8_data``; for a bundle whose float networks are gone. The manifest keeps the old
     ``int8`` entry under ``requantised_from``."""
-    from tracker.core.bundle import open_bundle
     _check_bits(weight_bits)
-    if not Path(int8_data).is_dir():
-        raise UserError(f"--int8 {int8_data}: not a folder; give a 'synth' split to calibrate the int8 detector on")
-    src = open_bundle(model_dir)
-    if not src.manifest.has_detector:
-        raise UserError(f"{model_dir}: this bundle has no detector; train one with 'app.py train-detector'")
+    _check_split(int8_data)
+    src = bundle_with_detector(model_dir)
     d0 = src.manifest.detector
     if "int8" not in d0:
         raise UserError(f"{model_dir}: its detector is not int8; quantise it with 'app.py lab join-detectors --int8 SPLIT'")
@@ -330,15 +344,8 @@ def requantise_detector(model_dir, int8_data, out_dir=None, calibration_images: 
         q = quantise_checked(flt, final, int8_data, spec, calibration_images, log, weight_bits)
         q.update(command=command or "app.py " + " ".join(sys.argv[1:]), created=time.strftime("%Y-%m-%d %H:%M:%S"),
                  requantised_from={"detector_sha256": sha256(old), **d0["int8"]})
-        m = src.manifest.copy()
-        m.name = out.name
-        m.detector = {**d0, "int8": q}
-        with staged_bundle(src.root, out) as stage:
-            (stage / src.manifest.artefacts["detector"]).write_bytes(final.read_bytes())
-            write_manifest(stage, m)
-    manifest = read_verified_manifest(out)
-    log(f"bundle {out}: its detector quantised again (int8, {weight_bits}-bit weights), "
-        f"{(out / src.manifest.artefacts['detector']).stat().st_size / 1e6:.1f} MB")
+        manifest, size = _store_detector(src, out, final, {**d0, "int8": q})
+    log(f"bundle {out}: its detector quantised again (int8, {weight_bits}-bit weights), {size:.1f} MB")
     return manifest
 
 
@@ -371,8 +378,8 @@ def join_detectors(model_dir, others, out_dir=None, int8_data=None, calibration_
         raise UserError(f"--weight-bits {weight_bits} is for int8 weights: give --int8 SPLIT too")
     if score_thresh is not None and not 0 < score_thresh < 1:
         raise UserError(f"--score-thresh must lie between 0 and 1, not {score_thresh}")
-    if int8_data is not None and not Path(int8_data).is_dir():
-        raise UserError(f"--int8 {int8_data}: not a folder; give a 'synth' split to calibrate the int8 detector on")
+    if int8_data is not None:
+        _check_split(int8_data)
     src, spec0, d0, p0 = float_detector(model_dir, "join the detectors it was made from")
     members = [(model_dir, spec0, d0, p0)] + [(o, *float_detector(o, "join the detectors it was made from")[1:]) for o in others]
     for path, spec, _, _ in members[1:]:
@@ -401,17 +408,11 @@ def join_detectors(model_dir, others, out_dir=None, int8_data=None, calibration_
             hw = {"tensors": half_weights(joined, final), "storage": "float16, cast to float32 on loading",
                   "max_abs_diff_on_noise": float(np.abs(run_graph(final, x) - run_graph(joined, x)).max())}
             log(f"weights in float16: {hw['tensors']} tensors, outputs {hw['max_abs_diff_on_noise']:.2e} from float32's")
-        m = src.manifest.copy()
-        m.name = out.name
-        m.detector = {**d0, "ensemble": info, **({"int8": q} if int8_data is not None else {}),
-                      **({"half_weights": hw} if half else {})}
+        detector = {**d0, "ensemble": info, **({"int8": q} if int8_data is not None else {}),
+                    **({"half_weights": hw} if half else {})}
         if score_thresh is not None:
-            m.detector["score_thresh"] = float(score_thresh)
-        with staged_bundle(src.root, out) as stage:
-            (stage / src.manifest.artefacts["detector"]).write_bytes(final.read_bytes())
-            write_manifest(stage, m)
-    manifest = read_verified_manifest(out)
-    size = (out / src.manifest.artefacts["detector"]).stat().st_size / 1e6
+            detector["score_thresh"] = float(score_thresh)
+        manifest, size = _store_detector(src, out, final, detector)
     seen = {"none": "", "both": " on the image and its mirror image", "alternate": ", the image and its mirror image by turns"}
     log(f"bundle {out}: a detector averaging {len(members)} network{'s' if len(members) > 1 else ''}{seen[mirror]}"
         + (" (int8)" if int8_data is not None else " (weights in float16)" if half else "") + f", {size:.1f} MB")

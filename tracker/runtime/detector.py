@@ -198,14 +198,20 @@ class Detector:
         return dets, decode(maps, wide, lb, (w, h))
 
 
-def float_detector(path, use: str):
-    """(bundle, its detector's spec, its manifest entry, its ONNX file) of a bundle whose
-    detector is a single float network (one that can join others, or be fine-tuned from);
-    ``use``: what to do instead, said when it is joined or quantised."""
+def bundle_with_detector(path):
+    """The bundle at ``path``, refused (one line) when it has no detector."""
     from tracker.core.bundle import open_bundle
     b = open_bundle(path)
     if not b.manifest.has_detector:
         raise UserError(f"{path}: this bundle has no detector; train one with 'app.py train-detector'")
+    return b
+
+
+def float_detector(path, use: str):
+    """(bundle, its detector's spec, its manifest entry, its ONNX file) of a bundle whose
+    detector is a single float network (one that can join others, or be fine-tuned from);
+    ``use``: what to do instead, said when it is joined or quantised."""
+    b = bundle_with_detector(path)
     d = b.manifest.detector
     if "ensemble" in d or "int8" in d:
         raise UserError(f"{path}: its detector is joined or quantised already; {use}")
