@@ -141,3 +141,11 @@ def test_build_refuses_bad_input_in_one_line(small, tmp_path):
         bb.build(bb.Recipe(models=str(src), minutes=0.05, head_sets=0), tmp_path / "out3", log=lambda m: None)
     with pytest.raises(UserError, match="no build recipe"):
         bb.recipe_from_manifest(Path(__file__).parents[1] / "models" / "lmo")
+
+
+def test_build_without_the_train_extra_stops_before_rendering(small, tmp_path, monkeypatch):
+    import sys
+    monkeypatch.setitem(sys.modules, "torch", None)  # 'import torch' fails, as without the extra
+    with pytest.raises(UserError, match=r"the 'train' extra: .*pip install -e '\.\[train\]'"):
+        bb.build(bb.Recipe(models=str(_meshes(tmp_path)), minutes=0.05), tmp_path / "out", log=lambda m: None)
+    assert not (tmp_path / "out.work").exists() and not (tmp_path / "out").exists()

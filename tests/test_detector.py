@@ -316,8 +316,8 @@ def test_a_detector_can_start_from_a_bundles_exported_network(tiny_detector_bund
     from tracker.core.bundle import open_bundle
     from tracker.build.detector_train import _init_weights, train_detector
     from tracker.build.nets.detector import CenterNetLite
-    from tracker.build.train import _torch
-    torch = _torch()
+    from tracker.build.train import require_torch
+    torch = require_torch()
     classes = open_bundle(tiny_detector_bundle).manifest.detector["classes"]
     sd, frozen = _init_weights(torch, tiny_detector_bundle, 8, classes)  # checks itself against onnxruntime
     assert frozen

@@ -12,7 +12,7 @@ Stages, run in order; everything they make lives in ``MODEL_DIR.work/`` except t
 5. ``detector``  the detector (``train-detector``) on both splits
 6. ``check``     a fresh held-out render split, and ``eval`` on it with ground-truth and
    detector boxes
-7. ``report``    ``MODEL_DIR.work/build/report.md`` + PNGs: sample renders next to their
+7. ``report``    ``MODEL_DIR/report/report.md`` + PNGs: sample renders next to their
    crops, accuracy per object on the held-out renders, timings
 
 The budget (:func:`plan`): ``--minutes`` is split as 20 % rendering (half per split: each
@@ -185,6 +185,8 @@ def build(recipe: Recipe, out_dir, log=print) -> dict:
         raise UserError(f"--max-images must be a whole number of at least 1, not {recipe.max_images}")
     from tracker.build.prepare import mesh_files
     mesh_files(recipe.models)  # a bad --models fails before anything is written
+    from tracker.build.train import require_torch
+    require_torch()  # and so does a missing 'train' extra, before minutes of rendering
     root = work_dir(out) / "build"
     root.mkdir(parents=True, exist_ok=True)
     state = _State(root / "state.json")

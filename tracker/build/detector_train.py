@@ -482,8 +482,8 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     if cutout_share is not None and not cutouts:
         raise UserError("--cutout-share is the share of images that get cut-outs: it needs --cutouts DIR as well")
     cutout_images, cutout_set = load_cutouts(cutouts, log) if cutouts else (None, None)
-    from tracker.build.train import _torch
-    torch = _torch()
+    from tracker.build.train import require_torch
+    torch = require_torch()
     from tracker.core.bundle import open_bundle, update_manifest
     from tracker.evaluation.detection_metrics import detection_ap
     from tracker.build.nets import precision as prec

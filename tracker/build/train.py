@@ -38,7 +38,8 @@ ROTATION_HIDDEN = (512, 512, 512)
 OVERLAY_FACES = 1500
 
 
-def _torch():
+def require_torch():
+    """torch, or a one-line error naming the extra that brings it."""
     try:
         import torch
     except ImportError:
@@ -266,7 +267,7 @@ def fit_head_sets(mu, cs, obj_ids, models_info, tr, va, rng, n_sets: int = 1, se
 
 def export_encoder(model, size: int, n_cond: int, path: Path, x_check: np.ndarray, c_check=None) -> float:
     """ONNX with a dynamic batch; returns the max |onnx - torch| on ``x_check``."""
-    torch = _torch()
+    torch = require_torch()
     enc = model.encoder.cpu().eval()
     x = torch.from_numpy(x_check[:2])
     args = (x,) if not n_cond else (x, torch.from_numpy(c_check[:2]))
@@ -324,7 +325,7 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
     the first one then fits the heads and writes the bundle, the others return None.
     ``head_sets``: head sets fitted (seeds ``seed``, ``seed + 1``, ...) and averaged
     (:func:`fit_head_sets`), each with ``reg_minutes``."""
-    torch = _torch()
+    torch = require_torch()
     from tracker.build.crops import CropSet, build_training_crops, crops_cache_path, train_val_split
     from tracker.core.meshes import load_models
     from tracker.build.nets.autoencoder import ENCODERS, METHODS, AutoEncoder
@@ -496,7 +497,7 @@ def refit_heads(model_dir, data_dir, out_dir=None, seed: int = 0, reg_minutes: f
     the distance-from-rotation trees and the codebook (for a ray-frame bundle made before the
     trees existed). ``jitter_scale``: the log-size noise of the jittered boxes (default
     :data:`~tracker.build.crops.JITTER_SCALE`, what the autoencoder trained on)."""
-    _torch()  # the MLPs train with torch
+    require_torch()  # the MLPs train with torch
     from tracker.core.bundle import read_verified_manifest, staged_bundle, write_manifest
     from tracker.build.crops import JITTER_SCALE, bundle_training_crops, crops_cache_path, train_val_split
     from tracker.runtime.estimator import PoseEstimator

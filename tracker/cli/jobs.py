@@ -548,8 +548,8 @@ def add_commands(sub, REPO) -> None:
                        description=_para("From a folder of meshes (PLY, OBJ, STL, GLB) to a bundle: the meshes in "
                                          "mm with their symmetries, synthetic training splits, the encoder and its "
                                          "pose heads, the detector, a check on fresh held-out renders and a report "
-                                         "(MODEL_DIR/report/report.md). --minutes is split 20 % rendering, 40 % "
-                                         "encoder and heads, 30 % detector, 10 % check. Everything intermediate stays "
+                                         "(MODEL_DIR/report/report.md). --minutes is split 20 % rendering, 48 % "
+                                         "encoder and heads, 30 % detector, 2 % check. Everything intermediate stays "
                                          "in MODEL_DIR.work/; Ctrl-C keeps what is done and the same command resumes."),
                        epilog="examples:\n  python app.py build --models my_meshes/ --out models/mug --minutes 60\n"
                               "  python app.py build --from-manifest models/mug --out models/mug2\n",
