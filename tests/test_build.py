@@ -2,6 +2,7 @@
 recipe in the manifest. A tiny budget and tiny splits: this exercises the job, not accuracy."""
 import json
 import shutil
+import time
 from pathlib import Path
 
 import pytest
@@ -102,17 +103,23 @@ def test_build_makes_a_bundle_resumes_and_records_its_recipe(small, tmp_path, mo
     real = dt.train_detector
 
     def interrupted(*a, **k):
+        time.sleep(0.5)
         raise KeyboardInterrupt
     monkeypatch.setattr(dt, "train_detector", interrupted)
     logs = []
     with pytest.raises(KeyboardInterrupt):
         bb.build(recipe, out, log=logs.append)
     state = json.loads((tmp_path / "models" / "mine.work" / "build" / "state.json").read_text())
-    assert sorted(state) == ["encoder", "models", "render", "render-det"]
+    assert [k for k in state if state[k]["done"]] == ["models", "render", "render-det", "encoder"]
+    assert not state["detector"]["done"] and state["detector"]["seconds"] >= 0.5  # its time so far is kept
     monkeypatch.setattr(dt, "train_detector", real)
     logs = []
     s = bb.build(recipe, out, log=logs.append)
     assert sum("done before (cached)" in m for m in logs) == 4  # the same command went on where it stopped
+    # the detector's time adds up both runs, and so does the whole build's
+    assert s["stages"]["detector"]["seconds"] > 0.5
+    after = json.loads((tmp_path / "models" / "mine.work" / "build" / "state.json").read_text())
+    assert s["minutes_all_runs"] == round(sum(v["seconds"] for v in after.values()) / 60, 1)
     b = open_bundle(out)  # verified: every file hashed, the report too
     assert b.manifest.has_detector and sorted(b.manifest.obj_ids) == [1, 2]
     assert b.manifest.heads["ensemble"]["seeds"] == [0, 1, 2]  # three head sets averaged
@@ -149,3 +156,17 @@ def test_build_without_the_train_extra_stops_before_rendering(small, tmp_path, m
     with pytest.raises(UserError, match=r"the 'train' extra: .*pip install -e '\.\[train\]'"):
         bb.build(bb.Recipe(models=str(_meshes(tmp_path)), minutes=0.05), tmp_path / "out", log=lambda m: None)
     assert not (tmp_path / "out.work").exists() and not (tmp_path / "out").exists()
+
+
+def test_sigterm_ends_a_long_job_as_ctrl_c_does():
+    import os
+    import signal
+    from tracker.cli.jobs import sigterm_as_ctrl_c
+    old = signal.getsignal(signal.SIGTERM)
+    try:
+        sigterm_as_ctrl_c()
+        with pytest.raises(KeyboardInterrupt):
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(5)  # the handler raises before this ends
+    finally:
+        signal.signal(signal.SIGTERM, old)

@@ -25,7 +25,8 @@ left of the 48 % after cutting the crops, and before the heads and the rest:
 :func:`tracker.build.train.training_minutes`), 30 % detector (its loading, validation and
 export included), 2 % held-out check and report (40 renders and two evaluations: seconds). Each stage is cached by a hash of its options
 and of the stages it reads; a rerun of the same command skips finished stages, and
-``train``/``train-detector`` resume from their checkpoints. Ctrl-C keeps what is done. The
+``train``/``train-detector`` resume from their checkpoints. Ctrl-C (or SIGTERM, as a cluster
+scheduler sends) keeps what is done; a stage's recorded time adds up all its runs. The
 recipe (every option and seed, the package versions) goes into the manifest (``build``), so
 ``build --from-manifest BUNDLE`` redoes it.
 """
@@ -158,8 +159,13 @@ class _State:
         s = self.d.get(stage)
         return s if s and s.get("key") == key and s.get("done") else None
 
-    def mark(self, stage: str, key: str, **result) -> None:
-        self.d[stage] = {"key": key, "done": True, **result}
+    def spent_before(self, stage: str, key: str) -> float:
+        """The seconds earlier, interrupted runs spent on ``stage`` with the same ``key``."""
+        s = self.d.get(stage)
+        return float(s.get("seconds", 0.0)) if s and s.get("key") == key and not s.get("done") else 0.0
+
+    def mark(self, stage: str, key: str, done: bool = True, **result) -> None:
+        self.d[stage] = {"key": key, "done": done, **result}
         tmp = self.path.with_suffix(".tmp")
         tmp.write_text(json.dumps(self.d, indent=1))
         tmp.replace(self.path)
@@ -205,9 +211,15 @@ def build(recipe: Recipe, out_dir, log=print) -> dict:
         used = sum(state.d[s].get("seconds", 0.0) for s in STAGES[:i - 1] if s in state.d) / 60
         log(f"[{i}/{len(STAGES)}] {name}: {spent:.1f} min used this run, about "
             f"{max(0.0, recipe.minutes - used):.1f} min of the budget left")
+        before = state.spent_before(name, key)
         t = time.perf_counter()
-        result = run() or {}
-        result["seconds"] = round(time.perf_counter() - t, 1)
+        try:
+            result = run() or {}
+        except BaseException:  # Ctrl-C, SIGTERM, an error: the time spent is kept for the rerun's record
+            state.mark(name, key, done=False, seconds=round(before + time.perf_counter() - t, 1))
+            raise
+        # the stage's time over all its runs (an interrupted one's included)
+        result["seconds"] = round(before + time.perf_counter() - t, 1)
         state.mark(name, key, **result)
         summary["stages"][name] = state.d[name]
         return state.d[name]
@@ -339,6 +351,7 @@ def build(recipe: Recipe, out_dir, log=print) -> dict:
                 if (k != "mesh_faces" or v) and (k != "max_images" or v is not None)}
     stage(7, "report", _key("report", k_check, recorded), do_report)
     summary["minutes"] = round((time.perf_counter() - t_start) / 60, 1)
+    summary["minutes_all_runs"] = round(sum(state.d[s].get("seconds", 0.0) for s in STAGES) / 60, 1)
     summary["budget_minutes"] = recipe.minutes
     summary["report"] = state.d["report"]["report"]
     return summary

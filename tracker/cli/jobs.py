@@ -58,6 +58,16 @@ def _print_validation(out, manifest) -> None:
           f"(AAE {v['aae']['te_median_mm']:.1f})")
 
 
+def sigterm_as_ctrl_c() -> None:
+    """SIGTERM (a cluster scheduler's stop, ``kill``) ends a long job as Ctrl-C does: the
+    detector's checkpoint is written, a build keeps its finished stages and the time spent."""
+    import signal
+
+    def stop(signum, frame):
+        raise KeyboardInterrupt
+    signal.signal(signal.SIGTERM, stop)
+
+
 def cmd_demo(args) -> int:
     """The bundled recording (demo/lmo_dev: the LM-O dev frames as a video, with their ground
     truth) through the full pipeline with models/lmo: detector -> crops -> encoder ->
@@ -199,6 +209,7 @@ def cmd_score(args) -> int:
 
 
 def cmd_synth(args) -> int:
+    sigterm_as_ctrl_c()
     from tracker.core.paths import shared_data
     from tracker.build.synth.engine import DEFAULT_MESH_FACES, SynthConfig, generate
     from tracker.build.synth.preview import preview
@@ -222,6 +233,7 @@ def cmd_synth(args) -> int:
 
 
 def cmd_train(args) -> int:
+    sigterm_as_ctrl_c()
     from tracker.build.train import train_bundle
     m = train_bundle(args.data, args.out, method=args.method, size=args.size, latent=args.latent,
                      minutes=args.minutes, seed=args.seed, max_images=args.max_images,
@@ -237,6 +249,7 @@ def cmd_train(args) -> int:
 
 
 def cmd_build(args) -> int:
+    sigterm_as_ctrl_c()
     from tracker.build.build_bundle import Recipe, build, recipe_from_manifest
     if args.from_manifest:
         recipe = recipe_from_manifest(args.from_manifest)
@@ -250,13 +263,15 @@ def cmd_build(args) -> int:
                         mesh_faces=args.mesh_faces, head_sets=args.head_sets, max_images=args.max_images)
     s = build(recipe, args.out, log=lambda m: print(m, file=sys.stderr))
     det = s["stages"].get("check", {}).get("detector", {})
-    print(f"built {args.out} in {s['minutes']} min this run (budget {s['budget_minutes']:g}): on held-out renders "
+    print(f"built {args.out} in {s['minutes']} min this run, {s['minutes_all_runs']} min over all its runs "
+          f"(budget {s['budget_minutes']:g}): on held-out renders "
           f"with its detector ADD(I) {det.get('add_recall', float('nan')):.3f}, AR_MSPD {det.get('ar_mspd', float('nan')):.3f}; "
           f"report {s['report']}")
     return 0
 
 
 def cmd_train_detector(args) -> int:
+    sigterm_as_ctrl_c()
     from tracker.build.detector_train import train_detector
     d = train_detector(args.data, args.model, minutes=args.minutes, width=args.width, input_w=args.input[0],
                        input_h=args.input[1], batch=args.batch, seed=args.seed, max_images=args.max_images,
