@@ -161,7 +161,7 @@ def test_build_without_the_train_extra_stops_before_rendering(small, tmp_path, m
 def test_sigterm_ends_a_long_job_as_ctrl_c_does():
     import os
     import signal
-    from tracker.cli.jobs import sigterm_as_ctrl_c
+    from tracker.runtime.signals import sigterm_as_ctrl_c
     old = signal.getsignal(signal.SIGTERM)
     try:
         sigterm_as_ctrl_c()

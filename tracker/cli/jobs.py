@@ -12,6 +12,7 @@ from tracker.build.decimate import SYNTH_FACES
 from tracker.build.nets.schedule import LR_SCHEDULES
 from tracker.core.errors import UserError
 from tracker.runtime.confidence import UNCERTAIN_BELOW
+from tracker.runtime.signals import sigterm_as_ctrl_c
 
 
 def _default_run_dir(name: str) -> Path:
@@ -56,16 +57,6 @@ def _print_validation(out, manifest) -> None:
     print(f"wrote {out}: synthetic validation median RE {v['regression']['re_median_deg']:.1f} deg "
           f"(AAE {v['aae']['re_median_deg']:.1f}), median TE {v['regression']['te_median_mm']:.1f} mm "
           f"(AAE {v['aae']['te_median_mm']:.1f})")
-
-
-def sigterm_as_ctrl_c() -> None:
-    """SIGTERM (a cluster scheduler's stop, ``kill``) ends a long job as Ctrl-C does: the
-    detector's checkpoint is written, a build keeps its finished stages and the time spent."""
-    import signal
-
-    def stop(signum, frame):
-        raise KeyboardInterrupt
-    signal.signal(signal.SIGTERM, stop)
 
 
 def cmd_demo(args) -> int:

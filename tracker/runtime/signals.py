@@ -1,6 +1,7 @@
 """Ctrl-C and SIGTERM in a run: the loop ends after the frame in flight (:class:`Stopper`); while
 the run's files are finished, the first signal is noted and the work goes on
-(:class:`Deferred`)."""
+(:class:`Deferred`); in a long job (synth, training, build) SIGTERM is Ctrl-C
+(:func:`sigterm_as_ctrl_c`)."""
 from __future__ import annotations
 
 import signal
@@ -43,3 +44,11 @@ class Deferred(Stopper):
             raise KeyboardInterrupt
         self.stop = True
         self.log(f"{self.what}; interrupt again to skip it")
+
+
+def sigterm_as_ctrl_c() -> None:
+    """SIGTERM (a cluster scheduler's stop, ``kill``) ends a long job as Ctrl-C does: the
+    detector's checkpoint is written, a build keeps its finished stages and the time spent."""
+    def stop(signum, frame):
+        raise KeyboardInterrupt
+    signal.signal(signal.SIGTERM, stop)
