@@ -1,6 +1,7 @@
 """app.py build: meshes -> a bundle in one budget, stage by stage, cached, resumable, its
 recipe in the manifest. A tiny budget and tiny splits: this exercises the job, not accuracy."""
 import json
+import os
 import shutil
 import time
 from pathlib import Path
@@ -132,6 +133,8 @@ def test_build_makes_a_bundle_resumes_and_records_its_recipe(small, tmp_path, mo
     assert not any(p.name.startswith("split") for p in out.iterdir())  # intermediates stay in the work folder
     again = bb.recipe_from_manifest(out)
     assert again == recipe
+    for f in src.iterdir():  # the same meshes with new times (a fresh copy): still nothing to redo
+        os.utime(f, (f.stat().st_atime + 3600, f.stat().st_mtime + 3600))
     logs = []
     bb.build(again, out, log=logs.append)  # --from-manifest on a finished build: nothing to redo
     assert sum("done before (cached)" in m for m in logs) == 7

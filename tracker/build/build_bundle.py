@@ -171,6 +171,16 @@ class _State:
         tmp.replace(self.path)
 
 
+def mesh_fingerprint(folder) -> list:
+    """The mesh folder as the build's cache sees it: each file's name and SHA-256 of its bytes.
+    Not its path or times, so a copy, a move or a fresh checkout of the same meshes keeps every
+    stage made from them (keyed on modification times, a re-provisioned folder redid the build)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    return sorted((f.name, hashlib.sha256(f.read_bytes()).hexdigest()) for f in folder.iterdir() if f.is_file())
+
+
 def _key(*parts) -> str:
     return hashlib.sha1(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:12]
 
@@ -226,9 +236,7 @@ def build(recipe: Recipe, out_dir, log=print) -> dict:
 
     # 1. meshes -> BOP models folder
     models_dir = root / "models"
-    src_files = sorted((str(p), p.stat().st_size, p.stat().st_mtime_ns) for p in Path(recipe.models).glob("*")
-                       if p.is_file()) if Path(recipe.models).is_dir() else []
-    k_models = _key("models", src_files, recipe.units, recipe.objects)
+    k_models = _key("models", mesh_fingerprint(recipe.models), recipe.units, recipe.objects)
 
     def do_models():
         from tracker.build.prepare import prepare_models
