@@ -297,6 +297,14 @@ def test_crop_caches_are_named_for_their_split(tmp_path, monkeypatch):
     assert crops_cache_path("w", "a", 64, 0, jitter=False) != a != crops_cache_path("w", "a", 64, 1)
     assert crops_cache_path("w", "a", 64, 0, jitter_scale=0.08) == a  # the default's name is unchanged
     assert crops_cache_path("w", "a", 64, 0, jitter_scale=0.12) != a  # other box noise: other crops
+    scene = tmp_path / "a" / "000000"
+    shutil.copytree(Path(__file__).parent / "fixtures" / "scene" / "000001", scene)
+    b = crops_cache_path("w", "a", 64, 0)
+    assert b != a and crops_cache_path("w", "a", 64, 0) == b  # named for what the split holds, stably
+    gt = json.loads((scene / "scene_gt.json").read_text())
+    gt[next(iter(gt))][0]["cam_t_m2c"][2] += 1.0  # rendered again into the same folder, other poses
+    (scene / "scene_gt.json").write_text(json.dumps(gt))
+    assert crops_cache_path("w", "a", 64, 0) != b  # not the old split's crops
 
 
 def test_distance_knn_equals_scikit_learns_brute_force():

@@ -155,9 +155,15 @@ def build_training_crops(split_dir, size: int, seed: int = 0, jitter: bool = Tru
 def crops_cache_path(work_dir, data_dir, size: int, seed: int, max_images: int | None = None,
                      jitter: bool = True, jitter_scale: float = JITTER_SCALE) -> Path:
     """Where training caches the crops of its split (``<bundle>.work/``), named for the split's
-    folder too, so that a bundle retrained on other data never loads the old crops, and for a
-    jitter other than the default."""
-    key = hashlib.sha1(str(Path(data_dir).resolve()).encode()).hexdigest()[:10]
+    folder and what it holds (its scenes' poses and cameras), so that a bundle retrained on other
+    data, or on a split rendered again into the same folder, never loads the old crops; and for
+    a jitter other than the default."""
+    h = hashlib.sha1(str(Path(data_dir).resolve()).encode())
+    for scene in sorted(p for p in Path(data_dir).glob("*") if (p / "scene_gt.json").is_file()):
+        for f in ("scene_gt.json", "scene_camera.json"):
+            h.update(f"{scene.name}/{f}".encode())
+            h.update((scene / f).read_bytes() if (scene / f).is_file() else b"")
+    key = h.hexdigest()[:10]
     boxes = "_exact" if not jitter else ("" if jitter_scale == JITTER_SCALE else f"_scale{jitter_scale:g}")
     return Path(work_dir) / f"crops_{size}_seed{seed}_{max_images or 'all'}{boxes}_{key}.npz"
 
