@@ -678,3 +678,46 @@ def test_a_split_whose_meshes_are_gone_is_refused_before_training(tiny_split, tm
     with pytest.raises(UserError, match="meshes it was rendered from .* are gone"):
         train_bundle(split, tmp_path / "b", method="cvml", size=32, latent=16, minutes=5, log=logs.append)
     assert not logs and not (tmp_path / "b.work").exists()  # nothing trained, nothing cut
+
+
+def test_head_sets_are_kept_one_by_one_and_a_rerun_fits_only_the_missing(tiny_split, tmp_path, monkeypatch):
+    """An interruption while the head sets fit (Ctrl-C, a session's end) loses at most the set in
+    flight: the rerun on the same codes loads the sets fitted before; other codes fit anew."""
+    from tracker.build import train as tr_mod
+    from tracker.build.crops import build_training_crops, train_val_split
+    from tracker.core.bop import load_models_info
+    cs = build_training_crops(tiny_split, 32, seed=0, jitter=True)
+    mu = np.random.default_rng(0).normal(size=(len(cs), 16)).astype(np.float32)
+    info = load_models_info(REPO / "models" / "lmo_models_info.json")
+    tr, va = train_val_split(len(cs), 0)
+    opts = dict(reg_epochs=3, codebook_per_object=20, log=lambda *a: None, cache_dir=tmp_path / "sets")
+    real, fitted = tr_mod.fit_heads, []
+
+    def counting(*a, **k):
+        fitted.append(k["seed"])
+        return real(*a, **k)
+
+    def second_interrupted(*a, **k):
+        fitted.append(k["seed"])
+        if k["seed"] == 4:
+            raise KeyboardInterrupt
+        return real(*a, **k)
+    monkeypatch.setattr(tr_mod, "fit_heads", second_interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        tr_mod.fit_head_sets(mu, cs, OBJS, info, tr, va, np.random.default_rng(5), n_sets=3, seed=3, **opts)
+    assert fitted == [3, 4]
+    monkeypatch.setattr(tr_mod, "fit_heads", counting)
+    fitted.clear()
+    ens, cb, dist_info, val = tr_mod.fit_head_sets(mu, cs, OBJS, info, tr, va, np.random.default_rng(5),
+                                                   n_sets=3, seed=3, **opts)
+    assert fitted == [4, 5]  # the first set was loaded, the interrupted one fitted again
+    fitted.clear()
+    again = tr_mod.fit_head_sets(mu, cs, OBJS, info, tr, va, np.random.default_rng(5), n_sets=3, seed=3, **opts)
+    assert fitted == []  # all three kept
+    box, K = cs.box[va], cs.K[va]
+    for a, b in zip(ens.predict(mu[va], cs.obj_id[va], box, K), again[0].predict(mu[va], cs.obj_id[va], box, K)):
+        assert np.allclose(a, b, rtol=1e-4, atol=1e-3)  # as a bundle stores them (float16 weights)
+    assert again[2] == json.loads(json.dumps(dist_info)) and set(again[3]) == set(val)
+    assert all(np.array_equal(cb.codes_[o][0], again[1].codes_[o][0]) for o in OBJS)
+    tr_mod.fit_head_sets(mu + 1, cs, OBJS, info, tr, va, np.random.default_rng(5), n_sets=3, seed=3, **opts)
+    assert fitted == [3, 4, 5]  # other codes (another encoder): fitted anew

@@ -240,24 +240,40 @@ def validate_head(h: PoseHead, mu, cs, va, symR, n_jittered: int | None, log=pri
 
 
 def fit_head_sets(mu, cs, obj_ids, models_info, tr, va, rng, n_sets: int = 1, seed: int = 0,
-                  n_jittered: int | None = None, log=print, **fit_options):
+                  n_jittered: int | None = None, log=print, cache_dir=None, **fit_options):
     """:func:`fit_heads` ``n_sets`` times, with seeds ``seed``, ``seed + 1``, ..., averaged in one
     :class:`HeadEnsemble` (one set: its :class:`PoseHead`). The codebook and the distance-head
     info are the first set's (``rng`` draws the codebook, as with one set); the validation
     figures are the average's. Their distance KNNs (where chosen) keep ``KNN_MAX_ROWS`` codes
     among them all, so that the bundle stays as small as with one set. Three sets on one encoder:
     dev mean +0.018 and +0.021 over the single sets' mean (stops 47 and 49); in ``build`` +0.051
-    (stop 51)."""
+    (stop 51). ``cache_dir``: each set fitted is kept there, and one fitted before on the same
+    codes and options is loaded instead (:class:`~tracker.build.head_cache.HeadSetCache`)."""
     fit_options["knn_max_rows"] = KNN_MAX_ROWS // n_sets
-    head, codebook, dist_info, val = fit_heads(mu, cs, obj_ids, models_info, tr, va, rng, seed=seed,
-                                               n_jittered=n_jittered, log=log, validate=n_sets == 1, **fit_options)
+    cache = None
+    if cache_dir is not None:
+        from tracker.build.head_cache import HeadSetCache
+        cache = HeadSetCache(cache_dir, mu, cs, tr, va, obj_ids,
+                             {**fit_options, "n_jittered": n_jittered, "validate": n_sets == 1})
+
+    def one(i: int, set_rng, **extra):
+        got = cache.load(seed + i) if cache else None
+        if got is not None:
+            log(f"head set {i + 1} of {n_sets} (seed {seed + i}): fitted before (cached)")
+            return got
+        if i:
+            log(f"head set {i + 1} of {n_sets} (seed {seed + i})")
+        got = fit_heads(mu, cs, obj_ids, models_info, tr, va, set_rng, seed=seed + i, log=log, **extra, **fit_options)
+        if cache:
+            cache.save(seed + i, *got)
+        return got
+
+    head, codebook, dist_info, val = one(0, rng, n_jittered=n_jittered, validate=n_sets == 1)
     if n_sets == 1:
         return head, codebook, dist_info, val
     heads = [head]
     for i in range(1, n_sets):
-        log(f"head set {i + 1} of {n_sets} (seed {seed + i})")
-        heads.append(fit_heads(mu, cs, obj_ids, models_info, tr, va, np.random.default_rng(seed + i), seed=seed + i,
-                               log=log, validate=False, **fit_options)[0])
+        heads.append(one(i, np.random.default_rng(seed + i), validate=False)[0])
     ensemble = HeadEnsemble(heads, {o: symmetry_rotations(models_info[o]) for o in obj_ids})
     ensemble.codebook = codebook
     symR = _sym_rotations(_object_index(obj_ids, cs.obj_id), obj_ids, models_info)
@@ -406,6 +422,7 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
         models_info = compute_models_info(load_models(mdir, obj_ids))
     head, codebook, dist_info, val = fit_head_sets(mu_h, cs_h, obj_ids, models_info, tr_h, va_h, rng, n_sets=head_sets,
                                                    seed=seed, n_jittered=len(cs), log=log, reg_minutes=reg_minutes,
+                                                   cache_dir=work / "head_sets",
                                                    codebook_per_object=codebook_per_object, reg_epochs=reg_epochs)
 
     # ---- export (a detector already in the bundle, for the same objects, is kept)
