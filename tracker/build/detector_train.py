@@ -27,6 +27,7 @@ from tracker.runtime.detector import BOX_KINDS, DetectorSpec, decode, letterbox,
 from tracker.core.errors import UserError
 from tracker.core.paths import work_dir
 from tracker.core.visibility import mask_box
+from tracker.build.nets.checkpoint import save_whole
 from tracker.build.nets.schedule import budget_lr
 
 MIN_VISIB = 0.1
@@ -574,7 +575,7 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     def save():
         if rank != 0:  # one checkpoint, the first process's (the weights are the same in all)
             return
-        torch.save({"model": model.state_dict(), "opt": opt.state_dict(), "state": state, "width": width,
+        save_whole({"model": model.state_dict(), "opt": opt.state_dict(), "state": state, "width": width,
                     "classes": spec.classes, "recipe": recipe, **({"ema": averaged} if averaged else {})}, ckpt)
 
     try:

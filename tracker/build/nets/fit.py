@@ -16,9 +16,13 @@ from tqdm import tqdm
 from tracker.core.errors import UserError
 from tracker.build.nets import precision as prec
 from tracker.build.nets.autoencoder import AutoEncoder, loss_terms
+from tracker.build.nets.checkpoint import save_whole
 from tracker.build.nets.schedule import LR_SCHEDULES, budget_lr
 
 KL_ALPHA = 0.1  # Table 4.6
+# a checkpoint inside an epoch at least this often (an epoch of 150 k crops takes 20 min on a CPU):
+# a process killed without warning loses at most this much training
+CHECKPOINT_SECONDS = 300.0
 
 
 def to_tensor(u8: np.ndarray) -> torch.Tensor:
@@ -71,6 +75,17 @@ def augment(x: torch.Tensor, g: torch.Generator, p: float = 0.3) -> torch.Tensor
     return x
 
 
+def rng_states(device: str) -> dict:
+    """torch's own generators (the variational latent's noise draws from them), to checkpoint."""
+    return {"cpu": torch.get_rng_state(), **({"cuda": torch.cuda.get_rng_state()} if device == "cuda" else {})}
+
+
+def set_rng_states(states: dict, device: str) -> None:
+    torch.set_rng_state(states["cpu"])
+    if device == "cuda" and "cuda" in states:
+        torch.cuda.set_rng_state(states["cuda"])
+
+
 def kl_weight(step: int, warmup: int = 0) -> float:
     """The KL term's weight at training step ``step``: ``KL_ALPHA``, reached linearly from 0
     over the first ``warmup`` steps when ``warmup`` > 0."""
@@ -112,7 +127,9 @@ def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, ou
     steps (0: full weight from the first step).
     ``lr_schedule``: 'budget' anneals the step size by a cosine over ``minutes`` (to 2 % of
     ``lr`` at the end); 'plateau' divides it by 5 after 3 epochs without a better validation L2.
-    Returns the training history."""
+    A checkpoint is written after every epoch, every ``CHECKPOINT_SECONDS`` within one, and on
+    Ctrl-C (or SIGTERM made Ctrl-C), which is then raised again; a resumed run goes on from the
+    batch it stopped at, with the same order of crops and random draws. Returns the training history."""
     from tracker.build.nets import distributed as dd
     rank, n_proc = dd.world()  # several processes under torchrun: each takes its share of every batch
     if lr_schedule not in LR_SCHEDULES:
@@ -131,6 +148,7 @@ def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, ou
     best_path = Path(out_dir) / "ae_best.pt"
     hist = {"epoch": [], "train_l2": [], "val_l2": [], "lr": [], "seconds": []}
     start_epoch, best, since_best, spent = 0, math.inf, 0, 0.0
+    part = None  # an epoch a checkpoint left part-way: its order of crops, batches done and L2 sums
     source = ckpt if ckpt.is_file() else (Path(init_from) if init_from else None)
     if source is not None:
         try:
@@ -146,8 +164,13 @@ def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, ou
             raise UserError(f"{source} is the checkpoint of another network ({type(e).__name__}): {hint}") from None
         g.set_state(st["gen"])
         if source == ckpt:
-            start_epoch, best, since_best, hist, spent = st["epoch"] + 1, st["best"], st["since_best"], st["hist"], st["spent"]
-            log(f"resumed from {ckpt} at epoch {start_epoch} ({spent / 60:.1f} min spent, best val L2 {best:.2f})")
+            if "rng" in st:  # the latent's sampling noise goes on as it would have
+                set_rng_states(st["rng"], device)
+            part = st.get("part")
+            start_epoch = st["epoch"] + (0 if part else 1)
+            best, since_best, hist, spent = st["best"], st["since_best"], st["hist"], st["spent"]
+            at = f", batch {part['pos']}" if part else ""
+            log(f"resumed from {ckpt} at epoch {start_epoch}{at} ({spent / 60:.1f} min spent, best val L2 {best:.2f})")
         else:
             sched.best, sched.num_bad_epochs = sched.mode_worse, 0  # judged afresh on this run's validation crops
             log(f"started from the weights of {source} (epoch {st['epoch']}, {st['spent'] / 60:.1f} min there); "
@@ -162,36 +185,66 @@ def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, ou
     t_start = time.perf_counter() - spent
     if n_proc > 1:  # one order of the crops for all processes; augmentation draws of each its own
         g = torch.Generator().manual_seed(seed * 1000 + rank)
+
+    def save(epoch: int, spent: float, part: dict | None = None) -> None:
+        if rank == 0:  # one checkpoint, the first process's (the weights are the same in all)
+            save_whole({"model": model.state_dict(), "opt": opt.state_dict(), "sched": sched.state_dict(),
+                        "gen": g.get_state(), "epoch": epoch, "best": best, "since_best": since_best,
+                        "hist": hist, "spent": spent, "rng": rng_states(device),
+                        **({"part": part} if part else {})}, ckpt)
+
+    def save_part():
+        save(epoch, time.perf_counter() - t_start, {"perm": torch.from_numpy(perm), "pos": pos, "tot": tot, "cnt": cnt})
+
+    last_save = time.perf_counter()
     for epoch in range(start_epoch, max_epochs):
         model.train()
-        perm = (torch.randperm(n, generator=g) if n_proc == 1
-                else torch.randperm(n, generator=torch.Generator().manual_seed(seed * 100003 + epoch))).numpy()
-        tot, cnt = 0.0, 0
+        if part:
+            perm, pos, tot, cnt = part["perm"].numpy(), part["pos"], part["tot"], part["cnt"]
+            part = None
+        else:
+            perm = (torch.randperm(n, generator=g) if n_proc == 1
+                    else torch.randperm(n, generator=torch.Generator().manual_seed(seed * 100003 + epoch))).numpy()
+            pos, tot, cnt = 0, 0.0, 0
         # every process takes the same number of steps (a partial last batch too small to share is left out)
         starts = [i for i in range(0, n, batch) if min(batch, n - i) >= n_proc]
-        bar = tqdm(starts, desc=f"epoch {epoch}", unit="batch", leave=False, disable=rank != 0)
-        for step, i in enumerate(bar, start=epoch * len(starts)):
-            idx = np.sort(perm[i:i + batch][rank::n_proc])
-            xb = prec.channels_last(augment(to_tensor(x_tr[idx]), g).to(device))
-            yb = to_tensor(y_tr[idx]).to(device)
-            cb = c_tr[idx].to(device) if cond else None
-            if lr_schedule == "budget":  # one clock: the same step size on every process under torchrun
-                step_lr = budget_lr(lr, dd.max_over_ranks(time.perf_counter() - t_start) / (minutes * 60), step)
-                for gr in opt.param_groups:
-                    gr["lr"] = step_lr
-            with prec.autocast(precision, device):
-                recon, mu, logvar = net(xb, cb)
-            l2, kl = loss_terms(recon, yb, mu, logvar)
-            loss = l2 + (kl_weight(step, kl_warmup) * kl if variational else 0.0)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            tot += float(l2.detach()) * len(idx)
-            cnt += len(idx)
-            bar.set_postfix(l2=f"{tot / cnt:.1f}")
-            if dd.any_rank(time.perf_counter() - t_start > minutes * 60):
-                break
-        val = evaluate_l2(model, x_va, y_va, c_va if cond else None, batch=256)
+        bar = tqdm(total=len(starts), initial=pos, desc=f"epoch {epoch}", unit="batch", leave=False,
+                   disable=rank != 0)
+        try:
+            for step, i in enumerate(starts[pos:], start=epoch * len(starts) + pos):
+                idx = np.sort(perm[i:i + batch][rank::n_proc])
+                xb = prec.channels_last(augment(to_tensor(x_tr[idx]), g).to(device))
+                yb = to_tensor(y_tr[idx]).to(device)
+                cb = c_tr[idx].to(device) if cond else None
+                if lr_schedule == "budget":  # one clock: the same step size on every process under torchrun
+                    step_lr = budget_lr(lr, dd.max_over_ranks(time.perf_counter() - t_start) / (minutes * 60), step)
+                    for gr in opt.param_groups:
+                        gr["lr"] = step_lr
+                with prec.autocast(precision, device):
+                    recon, mu, logvar = net(xb, cb)
+                l2, kl = loss_terms(recon, yb, mu, logvar)
+                loss = l2 + (kl_weight(step, kl_warmup) * kl if variational else 0.0)
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                opt.step()
+                tot += float(l2.detach()) * len(idx)
+                cnt += len(idx)
+                pos += 1
+                bar.update(1)
+                bar.set_postfix(l2=f"{tot / cnt:.1f}")
+                if time.perf_counter() - last_save > CHECKPOINT_SECONDS:
+                    save_part()
+                    last_save = time.perf_counter()
+                if dd.any_rank(time.perf_counter() - t_start > minutes * 60):
+                    break
+            bar.close()
+            val = evaluate_l2(model, x_va, y_va, c_va if cond else None, batch=256)
+        except KeyboardInterrupt:
+            bar.close()
+            save_part()
+            log(f"interrupted: checkpoint saved in {ckpt} (epoch {epoch}, batch {pos} of {len(starts)}); "
+                f"rerun the same command to resume")
+            raise
         if lr_schedule == "plateau":
             sched.step(val)
         spent = time.perf_counter() - t_start
@@ -206,10 +259,8 @@ def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, ou
             since_best += 1
         log(f"epoch {epoch}: train L2 {tot / max(cnt, 1):.2f}, val L2 {val:.2f}{' *' if improved else ''}, "
             f"lr {opt.param_groups[0]['lr']:.1e}, {spent / 60:.1f} min")
-        if rank == 0:
-            torch.save({"model": model.state_dict(), "opt": opt.state_dict(), "sched": sched.state_dict(),
-                        "gen": g.get_state(), "epoch": epoch, "best": best, "since_best": since_best,
-                        "hist": hist, "spent": spent}, ckpt)
+        save(epoch, spent)
+        last_save = time.perf_counter()
         if dd.any_rank(since_best >= patience or spent > minutes * 60):
             break
     dd.barrier()  # the best weights are written
