@@ -1,5 +1,6 @@
 """app.py build: meshes -> a bundle in one budget, stage by stage, cached, resumable, its
 recipe in the manifest. A tiny budget and tiny splits: this exercises the job, not accuracy."""
+import dataclasses
 import json
 import os
 import shutil
@@ -138,6 +139,17 @@ def test_build_makes_a_bundle_resumes_and_records_its_recipe(small, tmp_path, mo
     logs = []
     bb.build(again, out, log=logs.append)  # --from-manifest on a finished build: nothing to redo
     assert sum("done before (cached)" in m for m in logs) == 7
+    # another seed renders new splits into the same folders: what was cut from the old ones and
+    # the old detector's checkpoint are removed (gigabytes at full size), never loaded or resumed
+    work = tmp_path / "models" / "mine.work"
+    old = {p.name for p in work.iterdir() if p.name.startswith(("crops_", "det_images_", "detector_ckpt_"))}
+    assert {n.split("_")[0] for n in old} == {"crops", "det", "detector"}
+    logs = []
+    bb.build(dataclasses.replace(recipe, seed=1), out, log=logs.append)
+    removed = " ".join(m for m in logs if m.startswith("removed"))
+    assert all(n in removed for n in old), (old, removed)
+    assert not any(m.startswith(("loaded", "resumed from")) for m in logs), logs
+    assert len(list(work.glob("det_images_*.npz"))) == len(list(work.glob("detector_ckpt_*.pt"))) == 1
 
 
 def test_build_refuses_bad_input_in_one_line(small, tmp_path):

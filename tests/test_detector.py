@@ -405,6 +405,35 @@ def test_a_run_resumes_only_with_its_own_options(tiny_detector_bundle, tiny_bund
                        log=lambda *a: None)
 
 
+def test_a_split_rendered_again_is_cut_again_and_its_old_checkpoint_refused(tiny_bundle, tmp_path):
+    """The caches are named for the split's folder; what the folder holds is checked apart: the
+    images are cut again, and a checkpoint trained on the old images is not resumed."""
+    import json
+    from tracker.build.detector_train import train_detector
+    split = tmp_path / "split"
+    shutil.copytree(tiny_bundle.parent / "split", split)
+    root = tmp_path / "lmo"
+    shutil.copytree(tiny_bundle, root)
+    train_detector(split, root, minutes=0.01, width=8, batch=2, log=lambda *a: None)
+    (cache,), (ckpt,) = (sorted((tmp_path / "lmo.work").glob(p)) for p in ("det_images_*.npz", "detector_ckpt_*.pt"))
+    gt_path = next(split.glob("*/scene_gt.json"))
+    gt = json.loads(gt_path.read_text())
+    first = gt[next(iter(gt))][0]
+    first["cam_t_m2c"] = [v + 1.0 for v in first["cam_t_m2c"]]  # as a new render would: other poses
+    gt_path.write_text(json.dumps(gt))
+    logs = []
+    with pytest.raises(UserError, match="trained on an earlier version of .*split.*: delete it to start afresh"):
+        train_detector(split, root, minutes=0.01, width=8, batch=2, log=logs.append)
+    assert any("cutting its images again" in str(m) for m in logs), logs
+    ckpt.unlink()
+    logs = []
+    train_detector(split, root, minutes=0.01, width=8, batch=2, log=logs.append)
+    assert not any("cutting its images again" in str(m) or "resumed from" in str(m) for m in logs), logs
+    assert any(str(m).startswith("loaded ") for m in logs)  # the cache cut for the new split serves it
+    assert sorted(p.name for p in (tmp_path / "lmo.work").iterdir() if p.suffix in (".npz", ".pt")) == \
+        sorted([cache.name, ckpt.name])  # the same names, their contents renewed; nothing part-written
+
+
 def test_tiny_training_exports_and_loads(tiny_detector_bundle, lmo_dev):
     from tracker.core.bundle import open_bundle
     from tracker.runtime.detector import Detector

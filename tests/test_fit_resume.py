@@ -59,15 +59,15 @@ def test_an_epoch_stopped_part_way_resumes_at_its_batch(tmp_path, monkeypatch, h
 
 
 def test_a_checkpoint_write_stopped_midway_leaves_the_last_one(tmp_path, monkeypatch):
-    from tracker.build.nets.checkpoint import save_whole
+    from tracker.core.files import write_whole
     path = tmp_path / "ae_checkpoint.pt"
-    save_whole({"epoch": 3}, path)
+    write_whole(path, lambda tmp: torch.save({"epoch": 3}, tmp))
 
-    def cut_short(obj, f):
-        open(f, "wb").write(b"PK\x03")  # a few bytes, then the signal
+    def cut_short(tmp):
+        open(tmp, "wb").write(b"PK\x03")  # a few bytes, then the signal
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(torch, "save", cut_short)
     with pytest.raises(KeyboardInterrupt):
-        save_whole({"epoch": 4}, path)
+        write_whole(path, cut_short)
     assert torch.load(path, weights_only=True) == {"epoch": 3}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ae_checkpoint.pt"]  # nothing part-written left

@@ -181,6 +181,18 @@ def mesh_fingerprint(folder) -> list:
     return sorted((f.name, hashlib.sha256(f.read_bytes()).hexdigest()) for f in folder.iterdir() if f.is_file())
 
 
+def _forget(work: Path, patterns, log) -> None:
+    """Delete the work folder's files that a new split or recipe made stale (crops and detector
+    images cut from the old split are gigabytes each; checkpoints of another recipe must not be
+    resumed)."""
+    gone = [f for pat in patterns for f in sorted(work.glob(pat))]
+    size = sum(f.stat().st_size for f in gone)
+    for f in gone:
+        f.unlink()
+    if gone:
+        log(f"removed {len(gone)} stale file(s) from {work} ({size / 1e9:.2f} GB): {', '.join(f.name for f in gone)}")
+
+
 def _key(*parts) -> str:
     return hashlib.sha1(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:12]
 
@@ -257,9 +269,11 @@ def build(recipe: Recipe, out_dir, log=print) -> dict:
     log(f"at most {p['max_images']:,} images per rendered split "
         f"({'--max-images' if recipe.max_images else 'what this machine can train on; --max-images N sets it'})")
 
-    def render(split: Path, n: int, seed: int, seconds: float | None = None, **opts):
+    def render(split: Path, n: int, seed: int, seconds: float | None = None, trains: bool = True, **opts):
         def run():
             shutil.rmtree(split, ignore_errors=True)  # a split left half-made by an interruption
+            if trains:  # what training cut from the split before is stale
+                _forget(work_dir(out), ("crops_*.npz", "det_images_*.npz"), log)
             cfg = SynthConfig(models_dir=str(models_dir), backgrounds_dir=backgrounds, seed=seed, prior=recipe.prior,
                               obj_ids=list(obj_ids), mesh_faces=recipe.mesh_faces or None, **opts)
             rep = generate(cfg, split, n, workers=recipe.workers, command=f"build stage {split.name}",
@@ -303,8 +317,7 @@ def build(recipe: Recipe, out_dir, log=print) -> dict:
         from tracker.build.train import train_bundle
         prev = state.d.get("encoder", {}).get("key")
         if prev and prev != k_enc:  # another recipe: its checkpoints must not be resumed
-            for f in ("ae_checkpoint.pt", "ae_best.pt"):
-                (work_dir(out) / f).unlink(missing_ok=True)
+            _forget(work_dir(out), ("ae_checkpoint.pt", "ae_best.pt"), log)
         m = train_bundle(joined(), out, method=recipe.method, size=recipe.size, latent=recipe.latent,
                          minutes=p["encoder_minutes"], seed=recipe.seed, reg_minutes=p["reg_minutes"],
                          stage_minutes=p["encoder_minutes"] + 3 * recipe.head_sets * p["reg_minutes"],
@@ -320,6 +333,9 @@ def build(recipe: Recipe, out_dir, log=print) -> dict:
 
     def do_detector():
         from tracker.build.detector_train import train_detector
+        prev = state.d.get("detector", {}).get("key")
+        if prev and prev != k_det:  # another recipe or split: its checkpoint must not be resumed
+            _forget(work_dir(out), ("detector_ckpt_*.pt",), log)
         n = int(state.d["render"]["images"]) + int(state.d["render-det"]["images"])  # a tiny budget: < a batch
         d = train_detector(joined(), out, minutes=p["detector_minutes"], seed=recipe.seed, occlusion=0.5,
                            stage_minutes=p["detector_minutes"],
@@ -336,7 +352,7 @@ def build(recipe: Recipe, out_dir, log=print) -> dict:
 
     def do_check():
         from tracker.evaluation.evaluate import evaluate
-        render(split_check, CHECK_IMAGES, recipe.seed + 1000)()
+        render(split_check, CHECK_IMAGES, recipe.seed + 1000, trains=False)()
         res = {}
         for boxes in ("gt", "detector"):
             m = evaluate(out, split_check / "000000", root / f"check_{boxes}.json", boxes=boxes,

@@ -19,6 +19,7 @@ from tqdm import tqdm
 
 from tracker.core.bop import load_scene
 from tracker.core.errors import UserError
+from tracker.core.files import write_whole
 from tracker.core.geometry import SquareCrop, crop_and_resize, project, ray_rotation, square_crop
 from tracker.core.paths import work_dir
 
@@ -54,9 +55,7 @@ class CropSet:
         return CropSet(*(getattr(self, f)[idx] for f in self.__dataclass_fields__))
 
     def save(self, path) -> Path:
-        path = Path(path)
-        np.savez(path, **{f: getattr(self, f) for f in self.__dataclass_fields__})
-        return path
+        return write_whole(path, lambda tmp: np.savez(tmp, **{f: getattr(self, f) for f in self.__dataclass_fields__}))
 
     @classmethod
     def concat(cls, *sets: "CropSet") -> "CropSet":
@@ -152,18 +151,23 @@ def build_training_crops(split_dir, size: int, seed: int = 0, jitter: bool = Tru
                    np.stack(cols["t"]), np.stack(cols["box"]), np.stack(cols["K"]), np.array(cols["visib"]))
 
 
-def crops_cache_path(work_dir, data_dir, size: int, seed: int, max_images: int | None = None,
-                     jitter: bool = True, jitter_scale: float = JITTER_SCALE) -> Path:
-    """Where training caches the crops of its split (``<bundle>.work/``), named for the split's
-    folder and what it holds (its scenes' poses and cameras), so that a bundle retrained on other
-    data, or on a split rendered again into the same folder, never loads the old crops; and for
-    a jitter other than the default."""
+def split_fingerprint(data_dir) -> str:
+    """A split as the caches cut from it know it: its folder and what its scenes hold (their
+    poses and cameras), so that a split rendered again into the same folder is another split."""
     h = hashlib.sha1(str(Path(data_dir).resolve()).encode())
     for scene in sorted(p for p in Path(data_dir).glob("*") if (p / "scene_gt.json").is_file()):
         for f in ("scene_gt.json", "scene_camera.json"):
             h.update(f"{scene.name}/{f}".encode())
             h.update((scene / f).read_bytes() if (scene / f).is_file() else b"")
-    key = h.hexdigest()[:10]
+    return h.hexdigest()[:10]
+
+
+def crops_cache_path(work_dir, data_dir, size: int, seed: int, max_images: int | None = None,
+                     jitter: bool = True, jitter_scale: float = JITTER_SCALE) -> Path:
+    """Where training caches the crops of its split (``<bundle>.work/``), named for the split
+    (:func:`split_fingerprint`), so that a bundle retrained on other data, or on a split rendered
+    again into the same folder, never loads the old crops; and for a jitter other than the default."""
+    key = split_fingerprint(data_dir)
     boxes = "_exact" if not jitter else ("" if jitter_scale == JITTER_SCALE else f"_scale{jitter_scale:g}")
     return Path(work_dir) / f"crops_{size}_seed{seed}_{max_images or 'all'}{boxes}_{key}.npz"
 

@@ -22,12 +22,12 @@ import numpy as np
 from tqdm import tqdm
 
 from tracker.core.bop import load_scene
-from tracker.build.crops import split_scene_dirs, train_val_split
+from tracker.build.crops import split_fingerprint, split_scene_dirs, train_val_split
 from tracker.runtime.detector import BOX_KINDS, DetectorSpec, decode, letterbox, normalise
 from tracker.core.errors import UserError
+from tracker.core.files import write_whole
 from tracker.core.paths import work_dir
 from tracker.core.visibility import mask_box
-from tracker.build.nets.checkpoint import save_whole
 from tracker.build.nets.schedule import budget_lr
 
 MIN_VISIB = 0.1
@@ -53,12 +53,16 @@ def target_box(info: dict, kind: str, width: int, height: int) -> list[float]:
 def load_detection_set(split_dir, spec: DetectorSpec, cache: Path | None = None, max_images=None, log=print):
     """Letterboxed images (N, H, W, 3) uint8 and per image an (n, 5) array [class, x, y, w, h]
     of the boxes ``spec.boxes`` names (visible or amodal; instances with visib >= 0.1) in
-    network-input pixels."""
+    network-input pixels. ``cache`` holds them with the split's fingerprint: a split rendered
+    again since is cut again (a cache written before the fingerprint was kept is trusted)."""
+    split = split_fingerprint(split_dir)
     if cache is not None and cache.is_file():
         with np.load(cache, allow_pickle=False) as z:
-            images, boxes = z["images"], np.split(z["boxes"], np.cumsum(z["counts"])[:-1])
-        log(f"loaded {len(images)} images from {cache}")
-        return images, boxes
+            if "split" not in z or str(z["split"]) == split:
+                images, boxes = z["images"], np.split(z["boxes"], np.cumsum(z["counts"])[:-1])
+                log(f"loaded {len(images)} images from {cache}")
+                return images, boxes
+        log(f"{cache}: cut from an earlier version of {split_dir}; cutting its images again")
     lut = {c: i for i, c in enumerate(spec.classes)}
     imgs, boxes = [], []
     scenes = split_scene_dirs(split_dir)
@@ -83,7 +87,8 @@ def load_detection_set(split_dir, spec: DetectorSpec, cache: Path | None = None,
         raise UserError(f"{split_dir}: no images")
     images = np.stack(imgs)
     if cache is not None:
-        np.savez(cache, images=images, boxes=np.concatenate(boxes), counts=np.array([len(b) for b in boxes]))
+        write_whole(cache, lambda tmp: np.savez(tmp, images=images, boxes=np.concatenate(boxes),
+                                                counts=np.array([len(b) for b in boxes]), split=np.array(split)))
     return images, boxes
 
 
@@ -526,6 +531,7 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     n_params = sum(p.numel() for p in model.parameters())
     opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
     ckpt = work / f"detector_ckpt_{key}.pt"
+    data_print = split_fingerprint(data_dir)  # the key has the split's folder; this, what it holds
     state = {"step": 0, "seconds": 0.0, "history": []}
     averaged = None  # the weights' moving average (--ema)
     # weights to start from, and whether its BatchNorms stay frozen (a bundle's exported network)
@@ -542,6 +548,9 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
         z = torch.load(ckpt, weights_only=True, map_location="cpu")  # tensors and plain containers only: no code runs
         # checkpoints written before the recipe was kept are trusted; keys added since have their off value
         old = {**RECIPE_ADDED, **z.get("recipe", recipe)}
+        if z.get("data", data_print) != data_print:  # (checkpoints written before it was kept are trusted)
+            raise UserError(f"{ckpt} was trained on an earlier version of {data_dir} (rendered again since): "
+                            f"delete it to start afresh")
         if old != recipe:
             raise UserError(f"{ckpt} was written by a run with {_recipe_options(old, recipe)}: rerun with those "
                             f"options to resume it, or delete it to start afresh")
@@ -575,8 +584,9 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     def save():
         if rank != 0:  # one checkpoint, the first process's (the weights are the same in all)
             return
-        save_whole({"model": model.state_dict(), "opt": opt.state_dict(), "state": state, "width": width,
-                    "classes": spec.classes, "recipe": recipe, **({"ema": averaged} if averaged else {})}, ckpt)
+        z = {"model": model.state_dict(), "opt": opt.state_dict(), "state": state, "width": width,
+             "classes": spec.classes, "recipe": recipe, "data": data_print, **({"ema": averaged} if averaged else {})}
+        write_whole(ckpt, lambda tmp: torch.save(z, tmp))
 
     try:
         model.train()

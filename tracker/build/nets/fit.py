@@ -14,9 +14,9 @@ from torch.nn import functional as F
 from tqdm import tqdm
 
 from tracker.core.errors import UserError
+from tracker.core.files import write_whole
 from tracker.build.nets import precision as prec
 from tracker.build.nets.autoencoder import AutoEncoder, loss_terms
-from tracker.build.nets.checkpoint import save_whole
 from tracker.build.nets.schedule import LR_SCHEDULES, budget_lr
 
 KL_ALPHA = 0.1  # Table 4.6
@@ -188,10 +188,10 @@ def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, ou
 
     def save(epoch: int, spent: float, part: dict | None = None) -> None:
         if rank == 0:  # one checkpoint, the first process's (the weights are the same in all)
-            save_whole({"model": model.state_dict(), "opt": opt.state_dict(), "sched": sched.state_dict(),
-                        "gen": g.get_state(), "epoch": epoch, "best": best, "since_best": since_best,
-                        "hist": hist, "spent": spent, "rng": rng_states(device),
-                        **({"part": part} if part else {})}, ckpt)
+            state = {"model": model.state_dict(), "opt": opt.state_dict(), "sched": sched.state_dict(),
+                     "gen": g.get_state(), "epoch": epoch, "best": best, "since_best": since_best,
+                     "hist": hist, "spent": spent, "rng": rng_states(device), **({"part": part} if part else {})}
+            write_whole(ckpt, lambda tmp: torch.save(state, tmp))
 
     def save_part():
         save(epoch, time.perf_counter() - t_start, {"perm": torch.from_numpy(perm), "pos": pos, "tot": tot, "cnt": cnt})
