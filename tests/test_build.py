@@ -161,8 +161,17 @@ def test_build_refuses_bad_input_in_one_line(small, tmp_path):
         bb.build(bb.Recipe(models=str(src), minutes=0.05, objects=[1, 7]), tmp_path / "out2", log=lambda m: None)
     with pytest.raises(UserError, match="--head-sets must be"):
         bb.build(bb.Recipe(models=str(src), minutes=0.05, head_sets=0), tmp_path / "out3", log=lambda m: None)
+    bare = tmp_path / "bare"  # a bundle made by 'train', not 'build'
+    shutil.copytree(Path(__file__).parents[1] / "models" / "lmo", bare)
+    from tracker.core.bundle import update_manifest
+    update_manifest(bare, lambda m, folder: m.extra.pop("build"))
     with pytest.raises(UserError, match="no build recipe"):
-        bb.recipe_from_manifest(Path(__file__).parents[1] / "models" / "lmo")
+        bb.recipe_from_manifest(bare)
+
+
+def test_the_shipped_bundle_records_the_one_command_that_built_it():
+    r = bb.recipe_from_manifest(Path(__file__).parents[1] / "models" / "lmo")  # docs/models.md's command
+    assert (r.models, r.minutes, r.objects, r.seed) == ("../shared/data/lmo/models", 480.0, None, 0)
 
 
 def test_build_without_the_train_extra_stops_before_rendering(small, tmp_path, monkeypatch):

@@ -31,7 +31,7 @@ def test_help_lists_the_commands():
 def test_join_detectors_bad_input_is_a_one_line_error(tmp_path):
     p = run("lab", "join-detectors", "--model", REPO / "models" / "lmo", "--from", tmp_path, "--out", tmp_path / "j")
     assert_one_line_error(p)
-    assert "joined or quantised already" in p.stderr  # the bundled detector is a joined one
+    assert f"{tmp_path}: not a model bundle" in p.stderr  # --from names no bundle
     assert not (tmp_path / "j").exists()
 
 
