@@ -43,6 +43,7 @@ from pathlib import Path
 
 from tracker.build.decimate import SYNTH_FACES
 from tracker.core.errors import UserError
+from tracker.core.files import write_whole
 
 SHARES = {"render": 0.10, "render-det": 0.10, "encoder": 0.38, "heads": 0.10, "detector": 0.30, "check": 0.02}
 MAX_RATE = 50.0  # images per second of a split's time share: the cap on its size (2 workers here: ~30)
@@ -166,9 +167,7 @@ class _State:
 
     def mark(self, stage: str, key: str, done: bool = True, **result) -> None:
         self.d[stage] = {"key": key, "done": done, **result}
-        tmp = self.path.with_suffix(".tmp")
-        tmp.write_text(json.dumps(self.d, indent=1))
-        tmp.replace(self.path)
+        write_whole(self.path, lambda tmp: tmp.write_text(json.dumps(self.d, indent=1)))
 
 
 def mesh_fingerprint(folder) -> list:

@@ -50,12 +50,14 @@ def target_box(info: dict, kind: str, width: int, height: int) -> list[float]:
     return [x0, y0, min(max(x + w, vx + vw), width) - x0, min(max(y + h, vy + vh), height) - y0]
 
 
-def load_detection_set(split_dir, spec: DetectorSpec, cache: Path | None = None, max_images=None, log=print):
+def load_detection_set(split_dir, spec: DetectorSpec, cache: Path | None = None, max_images=None, log=print,
+                       fingerprint: str | None = None):
     """Letterboxed images (N, H, W, 3) uint8 and per image an (n, 5) array [class, x, y, w, h]
     of the boxes ``spec.boxes`` names (visible or amodal; instances with visib >= 0.1) in
     network-input pixels. ``cache`` holds them with the split's fingerprint: a split rendered
-    again since is cut again (a cache written before the fingerprint was kept is trusted)."""
-    split = split_fingerprint(split_dir)
+    again since is cut again (a cache written before the fingerprint was kept is trusted).
+    ``fingerprint``: the split's, when the caller has it already."""
+    split = fingerprint or split_fingerprint(split_dir)
     if cache is not None and cache.is_file():
         with np.load(cache, allow_pickle=False) as z:
             if "split" not in z or str(z["split"]) == split:
@@ -516,8 +518,10 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
                                    width] + ([box_kind] if box_kind != "visible" else [])
                                   + ([backbone, pretrained] if backbone != "plain" else [])).encode()).hexdigest()[:10]
     cache = work / f"det_images_{key}.npz"
+    data_print = split_fingerprint(data_dir)  # the key has the split's folder; this, what it holds
     # the first process cuts and caches the set, the others read it
-    images, boxes = dd.first_then_rest(lambda: load_detection_set(data_dir, spec, cache, max_images, log))
+    images, boxes = dd.first_then_rest(lambda: load_detection_set(data_dir, spec, cache, max_images, log,
+                                                                     fingerprint=data_print))
     n = len(images)
     if stage_minutes is not None:
         minutes = min(minutes, max(0.05, stage_minutes - (time.perf_counter() - t0) / 60 - AFTER_MINUTES))
@@ -531,7 +535,6 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     n_params = sum(p.numel() for p in model.parameters())
     opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
     ckpt = work / f"detector_ckpt_{key}.pt"
-    data_print = split_fingerprint(data_dir)  # the key has the split's folder; this, what it holds
     state = {"step": 0, "seconds": 0.0, "history": []}
     averaged = None  # the weights' moving average (--ema)
     # weights to start from, and whether its BatchNorms stay frozen (a bundle's exported network)

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from tracker.core.files import write_whole
 from tracker.runtime.heads import load_codebook, load_head, save_codebook, save_head
 
 
@@ -48,7 +49,6 @@ class HeadSetCache:
         s = self._stem(seed)
         save_head(head, s.with_suffix(".head.json"), s.with_suffix(".head.npz"))
         save_codebook(codebook, s.with_suffix(".codebook.npz"))
-        tmp = s.with_suffix(".info.tmp")
-        tmp.write_text(json.dumps({"seed": int(seed), "dist_info": dist_info, "validation": val},
-                                  default=lambda x: x.item() if hasattr(x, "item") else str(x)))
-        tmp.replace(s.with_suffix(".info.json"))
+        info = json.dumps({"seed": int(seed), "dist_info": dist_info, "validation": val},
+                          default=lambda x: x.item() if hasattr(x, "item") else str(x))
+        write_whole(s.with_suffix(".info.json"), lambda tmp: tmp.write_text(info))

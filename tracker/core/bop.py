@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 
 from tracker.core.errors import UserError
+from tracker.core.files import write_whole
 from tracker.core.geometry import intrinsics_problem, is_rotation
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg")
@@ -46,10 +47,7 @@ def check_output_file(path, what: str = "output") -> Path:
 def write_json(path: Path, obj) -> Path:
     path = check_output_file(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(obj, indent=1, default=_json_default))
-    tmp.replace(path)
-    return path
+    return write_whole(path, lambda tmp: tmp.write_text(json.dumps(obj, indent=1, default=_json_default)))
 
 
 def _json_default(o):

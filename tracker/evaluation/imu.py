@@ -63,6 +63,7 @@ from scipy.spatial.transform import Rotation, RotationSpline, Slerp
 
 from tracker.core.bop import csv_rows, read_results
 from tracker.core.errors import UserError
+from tracker.core.files import write_whole
 from tracker.core.geometry import quat_from_matrix, rotation_error_deg
 
 REQUIRED_COLUMNS = ("t", "qw", "qx", "qy", "qz")
@@ -820,9 +821,7 @@ def write_report(out_dir, report: dict, plots: bool = True) -> dict[str, Path]:
         js["pairs_csv"] = files["pairs"].name
     js["plots"] = [files[k].name for k in ("hist", "re_time", "tracks") if k in files]
     p = out / "imu_report.json"
-    tmp = p.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(js, indent=1))
-    tmp.replace(p)
+    write_whole(p, lambda tmp: tmp.write_text(json.dumps(js, indent=1)))
     files["report"] = p
     return files
 
