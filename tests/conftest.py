@@ -43,8 +43,8 @@ def lmo_models(data_dir):
 def tiny_bundle(tmp_path_factory, data_dir):
     """A bundle for all 8 LM-O objects, trained for seconds: exercises code paths only."""
     pytest.importorskip("torch")
-    from tracker.build.synth.engine import SynthConfig, generate
-    from tracker.build.train import train_bundle
+    from tracker.training.synth.engine import SynthConfig, generate
+    from tracker.training.train import train_bundle
     root = tmp_path_factory.mktemp("tiny_bundle")
     cfg = SynthConfig(models_dir=str(data_dir / "lmo" / "models"), backgrounds_dir=str(data_dir / "backgrounds"),
                       seed=4, objects_per_image=(8, 8))

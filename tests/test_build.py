@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 pytest.importorskip("torch")
-from tracker.build import build_bundle as bb  # noqa: E402
+from tracker.training import build as bb  # noqa: E402
 from tracker.core.bundle import open_bundle  # noqa: E402
 from tracker.core.errors import UserError  # noqa: E402
 
@@ -75,7 +75,7 @@ def test_the_splits_are_capped_by_memory_and_their_unused_time_goes_to_training(
 def test_the_encoder_stage_reserves_time_for_its_crops_and_heads():
     """train_bundle inside build: the autoencoder gets what is left of the stage after the
     crops, the regressors and the work after training (the stage ran 4.6 min over before)."""
-    from tracker.build import train as tr
+    from tracker.training import train as tr
     assert tr.training_minutes(100.0, 25.0, 1.0, 1000, 0.8, False) == 25.0  # room to spare: as asked
     n = 45_616
     got = tr.training_minutes(27.6, 25.2, 1.13, n, 0.8, False)
@@ -101,7 +101,7 @@ def test_build_makes_a_bundle_resumes_and_records_its_recipe(small, tmp_path, mo
     out = tmp_path / "models" / "mine"
     recipe = bb.Recipe(models=str(src), minutes=0.05, workers=1, size=32, latent=16)
     # an interruption while the detector trains: what was done before is kept
-    import tracker.build.detector_train as dt
+    import tracker.training.detector_train as dt
     real = dt.train_detector
 
     def interrupted(*a, **k):

@@ -101,7 +101,7 @@ def test_a_manifest_that_misstates_the_latent_size_is_refused(bundle):
 
 
 def test_decimate_rewrites_the_overlay_meshes_of_a_bundle_that_has_them(bundle):
-    from tracker.build.decimate import add_overlay_meshes
+    from tracker.training.decimate import add_overlay_meshes
     before = open_bundle(bundle).manifest
     assert before.extra["overlay_faces"] != 400 and all(o.overlay_mesh for o in before.objects)
     add_overlay_meshes(bundle, 400, log=lambda *a: None)

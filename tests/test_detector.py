@@ -111,7 +111,7 @@ def test_ap_hand_cases():
 
 def test_occlusion_pastes_clutter_and_drops_hidden_boxes():
     torch = pytest.importorskip("torch")
-    from tracker.build.detector_train import occlude
+    from tracker.training.detector_train import occlude
     x = torch.zeros(2, 3, 60, 80)
     x[1] = 1.0  # the second item is the only source of clutter for the first
     # class, x, y, w, h: a box over the whole image and a tiny one
@@ -128,7 +128,7 @@ def test_occlusion_pastes_clutter_and_drops_hidden_boxes():
 
 
 def test_hue_turns_keep_grey_and_cycle_the_channels():
-    from tracker.build.detector_train import hue_turns
+    from tracker.training.detector_train import hue_turns
     R = hue_turns([0.0, 2 * np.pi / 3, 1.0])
     assert np.allclose(R[0], np.eye(3), atol=1e-6)
     assert np.allclose(R[1] @ [1, 0, 0], [0, 1, 0], atol=1e-6)   # a third of a turn: red -> green
@@ -138,7 +138,7 @@ def test_hue_turns_keep_grey_and_cycle_the_channels():
 
 def test_strong_colour_changes_colours_not_boxes():
     torch = pytest.importorskip("torch")
-    from tracker.build.detector_train import augment_batch
+    from tracker.training.detector_train import augment_batch
     x = torch.rand(16, 3, 48, 64)
     boxes = [np.array([[0, 10, 8, 30, 20]], np.float32) for _ in range(16)]
     torch.manual_seed(0)
@@ -166,7 +166,7 @@ def test_strong_colour_changes_colours_not_boxes():
 
 def test_pasted_objects_join_the_targets():
     torch = pytest.importorskip("torch")
-    from tracker.build.detector_train import occlude
+    from tracker.training.detector_train import occlude
     x = torch.zeros(2, 3, 60, 80)
     x[1, :, 20:30, 40:52] = 1.0  # item 1's object, class 3: the only bright pixels
     boxes = [np.zeros((0, 5), np.float32), np.array([[3, 40, 20, 12, 10]], np.float32)]
@@ -195,7 +195,7 @@ def _write_cutouts(folder):
 
 
 def test_cutouts_load_cropped_premultiplied_rgba_and_skip_images_without_transparency(tmp_path):
-    from tracker.build.detector_train import load_cutouts
+    from tracker.training.detector_train import load_cutouts
     _write_cutouts(tmp_path / "cut" / "sub")
     logs = []
     (c,), ident = load_cutouts(tmp_path / "cut", logs.append)  # found in a subfolder
@@ -214,7 +214,7 @@ def test_cutouts_load_cropped_premultiplied_rgba_and_skip_images_without_transpa
 
 def test_cutouts_are_blended_by_their_alpha_and_hide_boxes():
     torch = pytest.importorskip("torch")
-    from tracker.build.detector_train import paste_cutouts
+    from tracker.training.detector_train import paste_cutouts
     cut = np.zeros((20, 40, 4), np.uint8)   # premultiplied: pure red on the right, clear on the left
     cut[:, 20:] = (255, 0, 0, 255)
     grid = np.array([[k, 4 * (k % 20), 4 * (k // 20), 4, 4] for k in range(300)], np.float32)  # 4x4 boxes tiling 80x60
@@ -242,7 +242,7 @@ def test_cutouts_are_blended_by_their_alpha_and_hide_boxes():
 
 
 def test_cutout_options_are_checked_before_training(tiny_bundle, tmp_path):
-    from tracker.build.detector_train import train_detector
+    from tracker.training.detector_train import train_detector
     with pytest.raises(UserError, match="--cutouts .*no such folder"):
         train_detector(tiny_bundle.parent / "split", tiny_bundle, minutes=0.01, cutouts=tmp_path / "nope")
     with pytest.raises(UserError, match="--cutout-share .* needs --cutouts"):
@@ -251,14 +251,14 @@ def test_cutout_options_are_checked_before_training(tiny_bundle, tmp_path):
 
 def test_pasting_objects_without_occlusion_is_refused(tiny_bundle):
     pytest.importorskip("torch")
-    from tracker.build.detector_train import train_detector
+    from tracker.training.detector_train import train_detector
     with pytest.raises(UserError, match="--occlusion"):
         train_detector(tiny_bundle.parent / "split", tiny_bundle, minutes=0.01, paste_objects=0.5)
 
 
 @pytest.fixture(scope="module")
 def tiny_detector_bundle(tiny_bundle, tmp_path_factory):
-    from tracker.build.detector_train import train_detector
+    from tracker.training.detector_train import train_detector
     root = tmp_path_factory.mktemp("det") / "lmo"
     shutil.copytree(tiny_bundle, root)
     train_detector(tiny_bundle.parent / "split", root, minutes=0.02, width=8, batch=2, log=lambda *a: None)
@@ -269,7 +269,7 @@ def test_a_stage_budget_caps_the_detectors_training(tiny_bundle, tmp_path):
     """build's detector stage: loading the images, validation and export come out of the same
     budget, so the training itself gets less than ``minutes``."""
     import time
-    from tracker.build.detector_train import AFTER_MINUTES, train_detector
+    from tracker.training.detector_train import AFTER_MINUTES, train_detector
     root = tmp_path / "lmo"
     shutil.copytree(tiny_bundle, root)
     t = time.perf_counter()
@@ -280,7 +280,7 @@ def test_a_stage_budget_caps_the_detectors_training(tiny_bundle, tmp_path):
 
 def test_a_bundle_with_a_detector_can_train_another(tiny_detector_bundle, tiny_bundle, tmp_path):
     from tracker.core.bundle import open_bundle
-    from tracker.build.detector_train import train_detector
+    from tracker.training.detector_train import train_detector
     root = tmp_path / "lmo"
     shutil.copytree(tiny_detector_bundle, root)
     before = open_bundle(root).manifest.files["detector.onnx"]["sha256"]
@@ -292,7 +292,7 @@ def test_a_bundle_with_a_detector_can_train_another(tiny_detector_bundle, tiny_b
 
 def test_a_detector_can_start_from_another_runs_weights(tiny_detector_bundle, tiny_bundle, tmp_path):
     from tracker.core.bundle import open_bundle
-    from tracker.build.detector_train import train_detector
+    from tracker.training.detector_train import train_detector
     src = next((tiny_detector_bundle.parent / "lmo.work").glob("detector_ckpt_*.pt"))
     root = tmp_path / "lmo"
     shutil.copytree(tiny_bundle, root)
@@ -314,9 +314,9 @@ def test_a_detector_can_start_from_a_bundles_exported_network(tiny_detector_bund
     output; the fine-tune keeps its BatchNorms frozen, and joined networks are refused."""
     pytest.importorskip("onnx")
     from tracker.core.bundle import open_bundle
-    from tracker.build.detector_train import _init_weights, train_detector
-    from tracker.build.nets.detector import CenterNetLite
-    from tracker.build.train import require_torch
+    from tracker.training.detector_train import _init_weights, train_detector
+    from tracker.training.nets.detector import CenterNetLite
+    from tracker.training.train import require_torch
     torch = require_torch()
     classes = open_bundle(tiny_detector_bundle).manifest.detector["classes"]
     sd, frozen = _init_weights(torch, tiny_detector_bundle, 8, classes)  # checks itself against onnxruntime
@@ -338,7 +338,7 @@ def test_a_detector_can_start_from_a_bundles_exported_network(tiny_detector_bund
     root = tmp_path / "lmo"
     shutil.copytree(tiny_bundle, root)
     seen = []
-    import tracker.build.nets.detector as nd
+    import tracker.training.nets.detector as nd
     freeze = nd.freeze_batchnorm
     monkeypatch.setattr(nd, "freeze_batchnorm", lambda model: (seen.append(1), freeze(model)))
     train_detector(tiny_bundle.parent / "split", root, minutes=0.01, width=8, batch=2, init_from=tiny_detector_bundle,
@@ -357,7 +357,7 @@ def test_a_detector_can_start_from_a_bundles_exported_network(tiny_detector_bund
 def test_amodal_targets_are_whole_silhouettes_clipped_to_the_image(tiny_bundle, tmp_path):
     from tracker.runtime.detector import DetectorSpec
     from tracker.research.detector_ensemble import join_detectors
-    from tracker.build.detector_train import load_detection_set, target_box, train_detector
+    from tracker.training.detector_train import load_detection_set, target_box, train_detector
     info = {"bbox_visib": [10, 20, 30, 40], "bbox_obj": [-5, 15, 50, 60]}
     assert target_box(info, "visible", 640, 480) == [10, 20, 30, 40]
     assert target_box(info, "amodal", 40, 480) == [0, 15, 40, 60]
@@ -383,7 +383,7 @@ def test_amodal_targets_are_whole_silhouettes_clipped_to_the_image(tiny_bundle, 
 
 
 def test_a_run_resumes_only_with_its_own_options(tiny_detector_bundle, tiny_bundle, tmp_path):
-    from tracker.build.detector_train import train_detector
+    from tracker.training.detector_train import train_detector
     root = tmp_path / "lmo"
     shutil.copytree(tiny_detector_bundle, root)
     shutil.copytree(tiny_detector_bundle.parent / "lmo.work", tmp_path / "lmo.work")
@@ -409,7 +409,7 @@ def test_a_split_rendered_again_is_cut_again_and_its_old_checkpoint_refused(tiny
     """The caches are named for the split's folder; what the folder holds is checked apart: the
     images are cut again, and a checkpoint trained on the old images is not resumed."""
     import json
-    from tracker.build.detector_train import train_detector
+    from tracker.training.detector_train import train_detector
     split = tmp_path / "split"
     shutil.copytree(tiny_bundle.parent / "split", split)
     root = tmp_path / "lmo"
@@ -566,14 +566,14 @@ def test_join_detectors_averages_the_networks_and_quantises_them(tiny_detector_b
     from tracker.core.bundle import open_bundle, update_manifest
     from tracker.runtime.detector import Detector, letterbox, normalise
     from tracker.research.detector_ensemble import join_detectors
-    from tracker.build.detector_train import train_detector
+    from tracker.training.detector_train import train_detector
     quiet = dict(log=lambda *a: None)
     split = tiny_bundle.parent / "split"
     second = tmp_path / "second"
     shutil.copytree(tiny_bundle, second)
     # a number of steps, not of seconds (train_detector has only a time budget): its clock ticks one
     # second per step, so the second network and the int8 figures below are the same on a busy machine
-    import tracker.build.detector_train as detector_train
+    import tracker.training.detector_train as detector_train
     ticks = itertools.count()
     with monkeypatch.context() as mp:
         mp.setattr(detector_train, "time", SimpleNamespace(perf_counter=lambda: float(next(ticks))))
@@ -757,7 +757,7 @@ def test_tune_heads_picks_the_trees_weight_on_renders(tiny_bundle, tmp_path):
 
 def test_ema_averages_the_weights_and_is_what_is_exported(tiny_bundle, tmp_path):
     torch = pytest.importorskip("torch")
-    from tracker.build.detector_train import ema_update, train_detector
+    from tracker.training.detector_train import ema_update, train_detector
     net = torch.nn.Sequential(torch.nn.Conv2d(1, 1, 1), torch.nn.BatchNorm2d(1))
     avg = {k: v.float().clone() for k, v in net.state_dict().items() if v.is_floating_point()}
     assert "1.num_batches_tracked" not in avg  # integer counters are not averaged

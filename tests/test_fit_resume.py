@@ -6,8 +6,8 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from tracker.build.nets import fit  # noqa: E402
-from tracker.build.nets.autoencoder import AutoEncoder  # noqa: E402
+from tracker.training.nets import fit  # noqa: E402
+from tracker.training.nets.autoencoder import AutoEncoder  # noqa: E402
 
 
 def _data():

@@ -46,7 +46,7 @@ def test_ensembles_flatten_and_refuse_heads_of_other_objects():
 
 
 def test_stacked_trees_and_mlps_give_each_members_prediction():
-    from tracker.build.fit_heads import BoostedTrees, NumpyMLP
+    from tracker.training.fit_heads import BoostedTrees, NumpyMLP
     from tracker.runtime.heads import StackedMLP, StackedTrees
     rng = np.random.default_rng(1)
     X = rng.normal(size=(800, 5))
@@ -108,7 +108,7 @@ def test_the_bundled_averaged_head_stacked_equals_member_by_member():
 
 
 def test_mlp_weights_are_stored_in_half_precision_and_evaluated_in_float32(tmp_path):
-    from tracker.build.fit_heads import NumpyMLP
+    from tracker.training.fit_heads import NumpyMLP
     from tracker.runtime.heads import MLP, PoseHead, load_head, save_head
     r = np.random.default_rng(0)
 
@@ -135,7 +135,7 @@ def test_mlp_weights_are_stored_in_half_precision_and_evaluated_in_float32(tmp_p
 def test_every_regressor_kind_survives_storage_exactly(tmp_path):
     """Each kind the bundle stores (MLP, KNN, trees, codebook) predicts the same after a round trip
     through JSON + npz, in an ensemble with symmetries."""
-    from tracker.build.fit_heads import BoostedTrees, KNNRegressor
+    from tracker.training.fit_heads import BoostedTrees, KNNRegressor
     from tracker.runtime.heads import Codebook, PoseHead, load_codebook, load_head, save_codebook, save_head
     r = np.random.default_rng(1)
     mu, ids = r.normal(size=(40, 8)).astype(np.float32), r.choice([3, 7], 40)
@@ -144,7 +144,7 @@ def test_every_regressor_kind_survives_storage_exactly(tmp_path):
     n_in = 8 + 2
 
     def mlp(out):
-        from tracker.build.fit_heads import NumpyMLP
+        from tracker.training.fit_heads import NumpyMLP
         m = NumpyMLP(loss="l1_rotation" if out == 6 else "l1")
         m.mean_, m.scale_ = r.normal(size=n_in).astype(np.float32), np.ones(n_in, np.float32)
         m.layers_ = [(r.normal(size=(n_in, 16)).astype(np.float16).astype(np.float32), np.zeros(16, np.float32)),
@@ -176,7 +176,7 @@ def test_malformed_pose_heads_are_refused_not_run(tmp_path):
 
     import pytest
 
-    from tracker.build.fit_heads import BoostedTrees, NumpyMLP
+    from tracker.training.fit_heads import BoostedTrees, NumpyMLP
     from tracker.runtime.heads import PoseHead, load_head, save_head
     r = np.random.default_rng(2)
 

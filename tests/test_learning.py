@@ -15,8 +15,8 @@ from tracker.core.bundle import open_bundle  # noqa: E402
 from tracker.core.errors import UserError  # noqa: E402
 from tracker.runtime.estimator import Detection, PoseEstimator  # noqa: E402
 from tracker.core.geometry import project, ray_rotation, rotation_error_deg, scale_intrinsics  # noqa: E402
-from tracker.build.synth.engine import SynthConfig, generate  # noqa: E402
-from tracker.build.train import train_bundle  # noqa: E402
+from tracker.training.synth.engine import SynthConfig, generate  # noqa: E402
+from tracker.training.train import train_bundle  # noqa: E402
 
 OBJS = [1, 9]
 
@@ -138,7 +138,7 @@ def test_eval_scores_a_bundle_of_some_of_the_scenes_objects(bundles, data_dir, t
 
 
 def test_kl_warmup_raises_the_kl_weight_step_by_step(tiny_split, tmp_path, monkeypatch):
-    from tracker.build.nets import fit
+    from tracker.training.nets import fit
     assert fit.kl_weight(0) == fit.kl_weight(10**6) == fit.KL_ALPHA
     assert fit.kl_weight(0, 1000) == 0.0 and fit.kl_weight(250, 1000) == pytest.approx(fit.KL_ALPHA / 4)
     assert fit.kl_weight(1000, 1000) == fit.kl_weight(5000, 1000) == fit.KL_ALPHA
@@ -213,7 +213,7 @@ def test_training_can_start_from_another_runs_weights(tiny_split, tmp_path):
     assert any(str(l).startswith("started from the weights of") for l in logs)
     m = json.loads((tmp_path / "b" / "manifest.json").read_text())
     assert m["training"]["init_from"] == str(src)
-    from tracker.build.nets.autoencoder import AutoEncoder
+    from tracker.training.nets.autoencoder import AutoEncoder
     a = torch.load(src, weights_only=True)
     b = torch.load(tmp_path / "b.work" / "ae_checkpoint.pt", weights_only=True)
     assert b["hist"]["epoch"][0] == 0 and len(b["hist"]["epoch"]) == b["epoch"] + 1  # a new history
@@ -287,7 +287,7 @@ def test_report_reuses_evaluations_only_of_the_same_bundle(tiny_bundle, tmp_path
 
 
 def test_crop_caches_are_named_for_their_split(tmp_path, monkeypatch):
-    from tracker.build.crops import crops_cache_path
+    from tracker.training.crops import crops_cache_path
     (tmp_path / "a").mkdir()
     (tmp_path / "b").mkdir()
     monkeypatch.chdir(tmp_path)
@@ -310,7 +310,7 @@ def test_crop_caches_are_named_for_their_split(tmp_path, monkeypatch):
 def test_distance_knn_equals_scikit_learns_brute_force():
     from sklearn.neighbors import KNeighborsRegressor
 
-    from tracker.build.fit_heads import KNNRegressor as DistanceKNN
+    from tracker.training.fit_heads import KNNRegressor as DistanceKNN
     rng = np.random.default_rng(0)
     X, y = rng.normal(size=(2000, 12)), rng.normal(size=2000)
     m = DistanceKNN(k=6, box_weight=2.5).fit(X, y)
@@ -337,9 +337,9 @@ def _distance_case(X, y):
 
 
 def test_choose_distance_keeps_the_head_with_the_lower_validation_error(monkeypatch):
-    import tracker.build.train
-    from tracker.build.fit_heads import KNNRegressor as DistanceKNN, NumpyMLP
-    from tracker.build.train import choose_distance
+    import tracker.training.train
+    from tracker.training.fit_heads import KNNRegressor as DistanceKNN, NumpyMLP
+    from tracker.training.train import choose_distance
     rng = np.random.default_rng(0)
     X = rng.normal(size=(1500, 20)).astype(np.float32)
     w = rng.normal(size=20) * 0.05
@@ -358,7 +358,7 @@ def test_choose_distance_keeps_the_head_with_the_lower_validation_error(monkeypa
     assert isinstance(m, DistanceKNN) and info["head"] == "knn" and info["val_te_median_mm"] < 1e-3
     assert info["knn"]["rows"] == 1200 and len(m.X_) == 1200
     # a large training set: the KNN keeps a random subset, so the bundle stays small
-    monkeypatch.setattr(tracker.build.train, "KNN_MAX_ROWS", 500)
+    monkeypatch.setattr(tracker.training.train, "KNN_MAX_ROWS", 500)
     m, info = choose_distance(X[tr], y2[tr], X[tr[:300]], y2[tr[:300]], *_distance_case(X[tr[:300]], y2[tr[:300]]),
                               reg_minutes=float("inf"), reg_epochs=20, log=lambda *a: None)
     assert info["knn"]["rows"] == 500 and info["knn"]["val_te_median_mm"] > 1e-3
@@ -433,7 +433,7 @@ def test_distance_from_rotation_is_averaged_with_the_latent_distance_in_log_spac
 def test_boosted_trees_predict_as_scikit_learn_does():
     from sklearn.ensemble import HistGradientBoostingRegressor
 
-    from tracker.build.fit_heads import BoostedTrees
+    from tracker.training.fit_heads import BoostedTrees
     rng = np.random.default_rng(0)
     X = rng.normal(size=(2000, 6))
     y = np.sin(2 * X[:, 0]) + X[:, 1] * X[:, 2] + 0.1 * rng.normal(size=2000)
@@ -450,7 +450,7 @@ def test_boosted_trees_predict_as_scikit_learn_does():
 def test_distance_from_rotation_is_always_kept_with_its_validation_recorded():
     from tracker.core.geometry import project
     from tracker.runtime.heads import apparent_size
-    from tracker.build.train import choose_distance_by_rotation
+    from tracker.training.train import choose_distance_by_rotation
     from tracker.runtime.heads import distance_by_rotation_inputs
     from scipy.spatial.transform import Rotation
     rng = np.random.default_rng(0)
@@ -481,7 +481,7 @@ def test_distance_from_rotation_is_always_kept_with_its_validation_recorded():
 def test_refit_heads_can_keep_the_regressors_and_add_the_distance_from_rotation(tiny_bundle, tmp_path):
     import pickle
 
-    from tracker.build.train import refit_heads
+    from tracker.training.train import refit_heads
     m = refit_heads(tiny_bundle, tiny_bundle.parent / "split", out_dir=tmp_path / "kept", keep_regressors=True,
                     log=lambda *a: None)
     assert m.heads["kept_regressors"] and set(m.heads["distance_by_rotation"]) >= {"used"}
@@ -495,8 +495,8 @@ def test_refit_heads_can_keep_the_regressors_and_add_the_distance_from_rotation(
 
 def test_refit_heads_with_wider_box_noise_cuts_crops_on_wider_boxes(tiny_bundle, tmp_path):
     from tracker.core.bundle import read_verified_manifest
-    from tracker.build.crops import JITTER_SCALE, bundle_training_crops
-    from tracker.build.train import refit_heads
+    from tracker.training.crops import JITTER_SCALE, bundle_training_crops
+    from tracker.training.train import refit_heads
     split = tiny_bundle.parent / "split"
     m = read_verified_manifest(tiny_bundle)
     exact = bundle_training_crops(tiny_bundle, m, split, jitter=False, log=lambda *a: None)
@@ -513,7 +513,7 @@ def test_refit_heads_with_wider_box_noise_cuts_crops_on_wider_boxes(tiny_bundle,
 
 def test_refit_heads_keeps_the_encoder_and_writes_a_verified_bundle(tiny_bundle, tmp_path):
     from tracker.core.bundle import sha256
-    from tracker.build.train import refit_heads
+    from tracker.training.train import refit_heads
     before = {p.name: sha256(p) for p in tiny_bundle.iterdir() if p.is_file()}
     m = refit_heads(tiny_bundle, tiny_bundle.parent / "split", out_dir=tmp_path / "refit", reg_minutes=0.01,
                     log=lambda *a: None)
@@ -527,7 +527,7 @@ def test_refit_heads_keeps_the_encoder_and_writes_a_verified_bundle(tiny_bundle,
 
 
 def test_refit_heads_with_an_epoch_budget_is_reproducible(tiny_bundle, tmp_path):
-    from tracker.build.train import refit_heads
+    from tracker.training.train import refit_heads
     split = tiny_bundle.parent / "split"
     poses = []
     for run in ("a", "b", "c"):
@@ -550,7 +550,7 @@ def test_join_heads_averages_refitted_heads_and_refuses_another_encoder(tiny_bun
     from tracker.core.geometry import mean_pose
     from tracker.research.head_ensemble import join_heads
     from tracker.runtime.heads import HeadEnsemble
-    from tracker.build.train import refit_heads
+    from tracker.training.train import refit_heads
     split = tiny_bundle.parent / "split"
     refit_heads(tiny_bundle, split, out_dir=tmp_path / "second", reg_minutes=0.01, seed=1, log=lambda *a: None)
     m = join_heads(tiny_bundle, [tmp_path / "second"], out_dir=tmp_path / "joined", log=lambda *a: None)
@@ -583,8 +583,8 @@ def test_join_heads_averages_refitted_heads_and_refuses_another_encoder(tiny_bun
 def test_head_sets_are_fitted_with_successive_seeds_and_averaged(tiny_split, monkeypatch):
     """train/build --head-sets N: N head sets (seeds s, s+1, ...) on one encoder's codes, their
     poses averaged; the codebook is the single set's, the validation the average's."""
-    from tracker.build.crops import build_training_crops, train_val_split
-    from tracker.build.train import fit_head_sets, fit_heads
+    from tracker.training.crops import build_training_crops, train_val_split
+    from tracker.training.train import fit_head_sets, fit_heads
     from tracker.core.bop import load_models_info
     from tracker.core.geometry import mean_pose
     from tracker.runtime.heads import HeadEnsemble
@@ -608,7 +608,7 @@ def test_head_sets_are_fitted_with_successive_seeds_and_averaged(tiny_split, mon
     assert set(val) == {"regression", "aae"} and val["regression"] != singles[0][3]["regression"]
     one = fit_head_sets(mu, cs, OBJS, info, tr, va, np.random.default_rng(5), n_sets=1, seed=3, **opts)
     assert not isinstance(one[0], HeadEnsemble) and one[3] == singles[0][3]
-    from tracker.build import train as tr_mod
+    from tracker.training import train as tr_mod
     monkeypatch.setattr(tr_mod, "KNN_MAX_ROWS", 6)  # the sets' KNNs share the bundle's room for codes
     assert fit_head_sets(mu, cs, OBJS, info, tr, va, np.random.default_rng(5), n_sets=2, seed=3, **opts)[2]["knn"]["rows"] == 3
     assert fit_head_sets(mu, cs, OBJS, info, tr, va, np.random.default_rng(5), n_sets=1, seed=3, **opts)[2]["knn"]["rows"] == 6
@@ -683,8 +683,8 @@ def test_a_split_whose_meshes_are_gone_is_refused_before_training(tiny_split, tm
 def test_head_sets_are_kept_one_by_one_and_a_rerun_fits_only_the_missing(tiny_split, tmp_path, monkeypatch):
     """An interruption while the head sets fit (Ctrl-C, a session's end) loses at most the set in
     flight: the rerun on the same codes loads the sets fitted before; other codes fit anew."""
-    from tracker.build import train as tr_mod
-    from tracker.build.crops import build_training_crops, train_val_split
+    from tracker.training import train as tr_mod
+    from tracker.training.crops import build_training_crops, train_val_split
     from tracker.core.bop import load_models_info
     cs = build_training_crops(tiny_split, 32, seed=0, jitter=True)
     mu = np.random.default_rng(0).normal(size=(len(cs), 16)).astype(np.float32)

@@ -108,7 +108,7 @@ def test_cached_decimation_renders_the_same_pixels_and_survives_a_broken_cache(t
     """synth's decimated meshes come from a cache after the first run: the same arrays and the
     same rendered pixels as a fresh decimation; a damaged entry is decimated again; another
     face count is another entry."""
-    from tracker.build import decimate as dec
+    from tracker.training import decimate as dec
     from tracker.runtime.render import Renderer
     monkeypatch.setenv("AUTOPOSE_CACHE", str(tmp_path / "cache"))
     mesh = lmo_models[1].mesh

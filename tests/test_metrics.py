@@ -339,7 +339,7 @@ def test_vsd_in_scoring_on_a_synthetic_scene_with_depth(tmp_path, data_dir):
     50 mm away lose most of it; without depth, ar_vsd is null."""
     from tracker.core.bop import Estimate, load_scene, write_results
     from tracker.evaluation.scoring import score_results
-    from tracker.build.synth.engine import SynthConfig, generate
+    from tracker.training.synth.engine import SynthConfig, generate
     cfg = SynthConfig(models_dir=str(data_dir / "lmo" / "models"), backgrounds_dir=str(data_dir / "backgrounds"),
                       obj_ids=[1, 5, 9], seed=3, objects_per_image=(3, 3), depth=True)
     generate(cfg, tmp_path / "split", 2, workers=1, progress=False)

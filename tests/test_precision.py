@@ -5,9 +5,9 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from tracker.build.nets.autoencoder import AutoEncoder  # noqa: E402
-from tracker.build.nets.fit import onehot, train_autoencoder  # noqa: E402
-from tracker.build.nets.precision import native_bf16, resolve  # noqa: E402
+from tracker.training.nets.autoencoder import AutoEncoder  # noqa: E402
+from tracker.training.nets.fit import onehot, train_autoencoder  # noqa: E402
+from tracker.training.nets.precision import native_bf16, resolve  # noqa: E402
 
 CPUINFO = "processor\t: 0\nflags\t\t: fpu sse2 avx2 avx512f {}\nbogomips\t: 4000\n"
 
@@ -46,7 +46,7 @@ def test_training_passes_keep_a_float32_model_that_learns(tmp_path, precision):
 def test_the_device_is_a_gpu_only_where_torch_sees_one(monkeypatch):
     import torch
 
-    from tracker.build.nets.precision import resolve_device
+    from tracker.training.nets.precision import resolve_device
     from tracker.core.errors import UserError
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     assert resolve_device("auto") == "cpu" and resolve_device("cpu") == "cpu"
@@ -59,7 +59,7 @@ def test_the_device_is_a_gpu_only_where_torch_sees_one(monkeypatch):
 
 
 def test_the_budget_schedule_anneals_over_the_time_budget():
-    from tracker.build.nets.schedule import FLOOR, budget_lr
+    from tracker.training.nets.schedule import FLOOR, budget_lr
     assert budget_lr(1e-3, 0.0, 0) == pytest.approx(1e-3)
     assert budget_lr(1e-3, 0.5, 10**4) == pytest.approx(1e-3 * (FLOOR + (1 - FLOOR) / 2))
     assert budget_lr(1e-3, 1.0, 10**4) == budget_lr(1e-3, 7.0, 10**4) == pytest.approx(1e-3 * FLOOR)
@@ -72,7 +72,7 @@ def test_the_budget_schedule_anneals_over_the_time_budget():
 def test_a_budgeted_autoencoder_ends_its_training_annealed_or_not(tmp_path, schedule, monkeypatch):
     import types
 
-    from tracker.build.nets import fit
+    from tracker.training.nets import fit
     ticks = iter(range(10**6))  # a clock of its own: 0.25 s a reading, whatever the machine's load
     monkeypatch.setattr(fit, "time", types.SimpleNamespace(perf_counter=lambda: 0.25 * next(ticks)))
     rng = np.random.default_rng(0)

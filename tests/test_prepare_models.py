@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from tracker.build.prepare import object_names, prepare_models
+from tracker.training.prepare import object_names, prepare_models
 from tracker.core.errors import UserError
 from tracker.core.meshes import load_models
 

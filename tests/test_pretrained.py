@@ -8,7 +8,7 @@ import pytest
 torch = pytest.importorskip("torch")
 pytest.importorskip("efficientnet_lite_pytorch")
 
-from tracker.build.nets.backbone import LiteTrunk, imagenet_input, load_efficientnet  # noqa: E402
+from tracker.training.nets.backbone import LiteTrunk, imagenet_input, load_efficientnet  # noqa: E402
 from tracker.core.errors import UserError  # noqa: E402
 
 
@@ -63,8 +63,8 @@ def test_a_missing_weights_package_is_a_one_line_error(monkeypatch):
 
 
 def test_a_tiny_training_run_with_the_pretrained_trunk_exports_and_estimates(data_dir, tmp_path):
-    from tracker.build.synth.engine import SynthConfig, generate
-    from tracker.build.train import train_bundle
+    from tracker.training.synth.engine import SynthConfig, generate
+    from tracker.training.train import train_bundle
     from tracker.core.bop import load_scene
     from tracker.runtime.estimator import Detection, PoseEstimator
     split = tmp_path / "split"
@@ -82,7 +82,7 @@ def test_a_tiny_training_run_with_the_pretrained_trunk_exports_and_estimates(dat
 
 
 def test_the_trunk_gives_stride_8_16_32_features_at_the_detectors_input():
-    from tracker.build.nets.backbone import LiteTrunk
+    from tracker.training.nets.backbone import LiteTrunk
     trunk = LiteTrunk("lite0", pretrained=False)
     with torch.no_grad():
         f8, f16, f32 = trunk.pyramid(torch.zeros(1, 3, 240, 320))
@@ -96,8 +96,8 @@ def test_a_detector_trains_on_the_pretrained_trunk_and_exports(tiny_bundle, tmp_
     the spec's normalisation the weights' own, ONNX export within 1e-4 (checked by
     train_detector), and the run-time detector decodes its output."""
     import shutil
-    from tracker.build.detector_train import train_detector
-    from tracker.build.nets.detector import IMAGENET_MEAN_STD, CenterNetPretrained
+    from tracker.training.detector_train import train_detector
+    from tracker.training.nets.detector import IMAGENET_MEAN_STD, CenterNetPretrained
     from tracker.core.bundle import open_bundle
     from tracker.runtime.detector import Detector
     root = tmp_path / "lmo"

@@ -51,7 +51,7 @@ def test_runtime_modules_import_neither_torch_nor_the_training_code():
     code = ("import sys\n"
             "import tracker.cli, tracker.runtime.loop, tracker.runtime.pipeline, tracker.runtime.detector, "
             "tracker.evaluation.track, tracker.evaluation.evaluate, tracker.evaluation.bench\n"
-            "bad = sorted(m for m in sys.modules if m == 'torch' or m.startswith(('torch.', 'tracker.build', "
+            "bad = sorted(m for m in sys.modules if m == 'torch' or m.startswith(('torch.', 'tracker.training', "
             "'tracker.research', 'sklearn')))\n"
             "print(bad)\n")
     p = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True)

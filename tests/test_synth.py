@@ -10,7 +10,7 @@ import pytest
 from tracker.core.bop import load_scene
 from tracker.core.errors import UserError
 from tracker.core.geometry import project
-from tracker.build.synth.engine import SynthConfig, generate
+from tracker.training.synth.engine import SynthConfig, generate
 
 OBJS = [1, 5, 9]  # small models keep the test quick
 
@@ -129,7 +129,7 @@ def test_forked_workers_render_the_same_split(small_split, tmp_path, data_dir):
     import sys
     script = (
         "import sys\n"
-        "from tracker.build.synth.engine import SynthConfig, generate, start_method\n"
+        "from tracker.training.synth.engine import SynthConfig, generate, start_method\n"
         f"cfg = SynthConfig(models_dir={str(data_dir / 'lmo' / 'models')!r}, "
         f"backgrounds_dir={str(data_dir / 'backgrounds')!r}, obj_ids={OBJS!r}, seed=5)\n"
         "assert start_method() == 'fork', start_method()\n"
@@ -150,13 +150,13 @@ def test_forked_workers_render_the_same_split(small_split, tmp_path, data_dir):
 
 def test_no_fork_after_a_gl_context(small_split):
     """This process rendered small_split in-process (a GL context): its pools must spawn."""
-    from tracker.build.synth.engine import start_method
+    from tracker.training.synth.engine import start_method
     from tracker.runtime.render import contexts_made
     assert contexts_made() > 0 and start_method() == "spawn"
 
 
 def test_preview_montage(small_split, tmp_path):
-    from tracker.build.synth.preview import preview
+    from tracker.training.synth.preview import preview
     p = preview(small_split, tmp_path / "preview.png", n_scenes=4, n_crops=8)
     img = cv2.imread(str(p))
     assert img is not None and img.shape[1] == 1280
@@ -189,7 +189,7 @@ def test_bad_input(data_dir, tmp_path):
     with pytest.raises(UserError, match="no readable .jpg/.png"):
         generate(cfg, tmp_path / "c2", 2, workers=1, progress=False)
     assert not (tmp_path / "c2" / "000000").exists()
-    from tracker.build.synth.randomise import list_backgrounds
+    from tracker.training.synth.randomise import list_backgrounds
     photo = sorted((data_dir / "backgrounds").glob("*.jpg"))[0]
     shutil.copy(photo, tmp_path / "empty" / photo.name)
     assert [p.name for p in list_backgrounds(tmp_path / "empty")] == [photo.name]
@@ -219,7 +219,7 @@ def _table_camera(elevation_deg, dist=900.0):
 def test_table_surface_lies_on_the_plane_the_objects_stand_on():
     import copy
     from tracker.core.camera import LMO_K
-    from tracker.build.synth.randomise import table_surface
+    from tracker.training.synth.randomise import table_surface
     h, w = 480, 640
     ramp = np.broadcast_to(np.linspace(0, 255, w, dtype=np.float32)[None, :, None], (h, w, 3)).astype(np.uint8)
     R, t = _table_camera(30.0)
@@ -252,7 +252,7 @@ def test_table_surface_lies_on_the_plane_the_objects_stand_on():
 
 def test_shadows_darken_the_table_near_the_object_only():
     from tracker.core.camera import LMO_K
-    from tracker.build.synth.randomise import cast_shadows
+    from tracker.training.synth.randomise import cast_shadows
     R, t = _table_camera(45.0)
     box = np.array([[x, y, z] for x in (-40, 40) for y in (-40, 40) for z in (0, 120)], float)  # on the table
     img = np.full((480, 640, 3), 200, np.uint8)
@@ -274,8 +274,8 @@ def test_the_table_changes_the_pixels_not_the_annotations(data_dir, tmp_path):
 
 
 def test_join_splits_links_the_scenes_in_order(small_split, tmp_path, data_dir):
-    from tracker.build.crops import build_training_crops
-    from tracker.build.synth.join import join_splits
+    from tracker.training.crops import build_training_crops
+    from tracker.training.synth.join import join_splits
     other = tmp_path / "other"
     generate(_cfg(data_dir, seed=6, p_table=0.0), other, 2, workers=1, progress=False)
     meta = join_splits(tmp_path / "joined", [small_split, other])
@@ -332,7 +332,7 @@ def test_overhead_lighting_changes_the_object_pixels_not_the_scenes(data_dir, tm
 
 
 def test_overhead_key_light_shines_down_and_dominates():
-    from tracker.build.synth.randomise import sample_overhead_lights
+    from tracker.training.synth.randomise import sample_overhead_lights
     down = np.array([0.0, 0.6, 0.8])  # a camera looking down at the table at about 53 degrees
     rng = np.random.default_rng(0)
     off = []
@@ -346,7 +346,7 @@ def test_overhead_key_light_shines_down_and_dominates():
 
 
 def test_an_interrupted_split_keeps_only_annotated_images(data_dir, tmp_path, monkeypatch):
-    from tracker.build.synth import engine
+    from tracker.training.synth import engine
     real, calls = engine._render_batch, []
 
     def stop_in_the_second_batch(args):
@@ -366,7 +366,7 @@ def test_an_interrupted_split_keeps_only_annotated_images(data_dir, tmp_path, mo
 
 
 def test_household_shapes_stand_upright_with_their_features():
-    from tracker.build.synth.randomise import household_meshes
+    from tracker.training.synth.randomise import household_meshes
     mug, cup, bottle = household_meshes(np.random.default_rng(0), 3)
     (x0, y0, _), (x1, y1, _) = mug.bounds
     assert x1 - x0 > 1.3 * (y1 - y0)  # the handle sticks out on one side only
@@ -385,8 +385,8 @@ def test_household_shapes_stand_upright_with_their_features():
 def test_photo_distractors_are_textured_tinted_and_unannotated(data_dir, tmp_path, style):
     from dataclasses import asdict
 
-    from tracker.build.synth import engine
-    from tracker.build.synth.randomise import target_palette
+    from tracker.training.synth import engine
+    from tracker.training.synth.randomise import target_palette
     cfg = _cfg(data_dir, seed=3, distractors=style)
     engine._init_worker(asdict(cfg))
     try:
@@ -395,7 +395,7 @@ def test_photo_distractors_are_textured_tinted_and_unannotated(data_dir, tmp_pat
                           axis=0).shape[0] for i in (0, 1, 2, 33, 34, 35)]
         assert min(cols) > 20  # a photo's patch, not a flat colour
         if style == "household":  # the second half: mugs, cups and bottles
-            from tracker.build.synth.randomise import household_meshes
+            from tracker.training.synth.randomise import household_meshes
             mug = household_meshes(np.random.default_rng([3, 10]), 1)[0]
             assert np.allclose(engine._W["verts"][engine.DISTRACTOR_BASE + 18], mug.vertices)
         for k in range(20):
@@ -420,7 +420,7 @@ def test_photo_distractors_are_textured_tinted_and_unannotated(data_dir, tmp_pat
 def test_a_render_worker_that_dies_is_replaced_and_its_images_rendered_again(data_dir, tmp_path, monkeypatch):
     """A worker that dies mid-split (as a Mesa segfault does) no longer hangs the job: the pool
     notices, a fresh one renders the lost batch again, and the split is whole and consistent."""
-    from tracker.build.synth import engine
+    from tracker.training.synth import engine
     marker = tmp_path / "crashed"
     monkeypatch.setenv(engine.CRASH_HOOK, f"5:{marker}")
     rep = generate(_cfg(data_dir, seed=5), tmp_path / "s", 8, workers=2, batch=2, progress=False)
@@ -437,7 +437,7 @@ def test_a_render_worker_that_dies_is_replaced_and_its_images_rendered_again(dat
 
 
 def test_a_batch_that_always_kills_its_worker_ends_the_job_with_an_error(data_dir, tmp_path, monkeypatch):
-    from tracker.build.synth import engine
+    from tracker.training.synth import engine
     monkeypatch.setenv(engine.CRASH_HOOK, "3:")  # image 3 kills every worker that renders it
     # which other batches finish before each pool breaks is a race; the failing one is always left
     with pytest.raises(UserError, match=r"renderer died 3 times in a row .*images [0-3]-[3-5] left"):
@@ -452,8 +452,8 @@ def test_a_batch_that_always_kills_its_worker_ends_the_job_with_an_error(data_di
 
 def test_shards_joined_are_the_split_rendered_at_once(small_split, tmp_path, data_dir):
     """synth --shard K/N: disjoint, deterministic parts; joined, the same images and annotations."""
-    from tracker.build.synth.engine import shard_range
-    from tracker.build.synth.join import join_splits
+    from tracker.training.synth.engine import shard_range
+    from tracker.training.synth.join import join_splits
     assert [list(shard_range(8, (k, 3))) for k in range(3)] == [[0, 1], [2, 3, 4], [5, 6, 7]]
     with pytest.raises(UserError, match="0 <= K < N"):
         shard_range(8, (3, 3))
@@ -501,7 +501,7 @@ def test_repeat_objects_fills_an_image_of_few_objects_with_instances_of_them(dat
     least once), annotated one by one as BOP allows; without it, each object once."""
     from dataclasses import asdict
 
-    from tracker.build.synth import engine
+    from tracker.training.synth import engine
     two = [1, 9]
     cfg = SynthConfig(models_dir=str(data_dir / "lmo" / "models"), backgrounds_dir=str(data_dir / "backgrounds"),
                       obj_ids=two, seed=6, repeat_objects=True)
@@ -548,7 +548,7 @@ def test_without_the_decimation_library_synth_says_what_to_do(data_dir, tmp_path
     one-line error naming the fix, from the parent before any worker starts (not a broken
     pool retried three times), and renders nothing."""
     import trimesh
-    from tracker.build import decimate as dec
+    from tracker.training import decimate as dec
 
     def missing(*a, **k):
         raise ImportError("No module named 'fast_simplification'")

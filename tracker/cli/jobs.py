@@ -8,8 +8,8 @@ from pathlib import Path
 
 from tracker.cli.args import (add_precision, add_regressor_budget, finite_float, fraction, id_list, nonnegative_float,
                               nonnegative_int, positive_float, positive_int, shard_spec)
-from tracker.build.decimate import SYNTH_FACES
-from tracker.build.nets.schedule import LR_SCHEDULES
+from tracker.training.decimate import SYNTH_FACES
+from tracker.training.nets.schedule import LR_SCHEDULES
 from tracker.core.errors import UserError
 from tracker.runtime.confidence import UNCERTAIN_BELOW
 from tracker.runtime.signals import sigterm_as_ctrl_c
@@ -202,8 +202,8 @@ def cmd_score(args) -> int:
 def cmd_synth(args) -> int:
     sigterm_as_ctrl_c()
     from tracker.core.paths import shared_data
-    from tracker.build.synth.engine import DEFAULT_MESH_FACES, SynthConfig, generate
-    from tracker.build.synth.preview import preview
+    from tracker.training.synth.engine import DEFAULT_MESH_FACES, SynthConfig, generate
+    from tracker.training.synth.preview import preview
     obj_ids = args.obj_ids
     if args.preview and (Path(args.preview).is_dir() or Path(args.preview).suffix.lower() not in (".png", ".jpg", ".jpeg")):
         raise UserError(f"--preview {args.preview}: name a .png or .jpg file")  # before the rendering, not after
@@ -225,7 +225,7 @@ def cmd_synth(args) -> int:
 
 def cmd_train(args) -> int:
     sigterm_as_ctrl_c()
-    from tracker.build.train import train_bundle
+    from tracker.training.train import train_bundle
     m = train_bundle(args.data, args.out, method=args.method, size=args.size, latent=args.latent,
                      minutes=args.minutes, seed=args.seed, max_images=args.max_images,
                      models_info_path=args.models_info, reg_minutes=args.reg_minutes, encoder=args.encoder,
@@ -241,7 +241,7 @@ def cmd_train(args) -> int:
 
 def cmd_build(args) -> int:
     sigterm_as_ctrl_c()
-    from tracker.build.build_bundle import Recipe, build, recipe_from_manifest
+    from tracker.training.build import Recipe, build, recipe_from_manifest
     if args.from_manifest:
         recipe = recipe_from_manifest(args.from_manifest)
         print(f"build: the recipe of {args.from_manifest}: {recipe}", file=sys.stderr)
@@ -263,7 +263,7 @@ def cmd_build(args) -> int:
 
 def cmd_train_detector(args) -> int:
     sigterm_as_ctrl_c()
-    from tracker.build.detector_train import train_detector
+    from tracker.training.detector_train import train_detector
     d = train_detector(args.data, args.model, minutes=args.minutes, width=args.width, input_w=args.input[0],
                        input_h=args.input[1], batch=args.batch, seed=args.seed, max_images=args.max_images,
                        lr=args.lr, init_from=args.init_from, occlusion=args.occlusion, paste_objects=args.paste_objects,

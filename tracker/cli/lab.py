@@ -20,7 +20,7 @@ def _print_preview(s) -> None:
 
 
 def cmd_join_splits(args) -> int:
-    from tracker.build.synth.join import join_splits
+    from tracker.training.synth.join import join_splits
     m = join_splits(args.out, args.splits, command="app.py " + " ".join(sys.argv[1:]))
     print(f"wrote {args.out}: {m['scenes']} scenes, {m['images_written']} images "
           f"from {len(args.splits)} splits (linked, not copied)")
@@ -28,7 +28,7 @@ def cmd_join_splits(args) -> int:
 
 
 def cmd_refit_heads(args) -> int:
-    from tracker.build.train import refit_heads
+    from tracker.training.train import refit_heads
     m = refit_heads(args.model, args.data, out_dir=args.out, seed=args.seed, reg_minutes=args.reg_minutes,
                     keep_regressors=args.keep_regressors, jitter_scale=args.jitter_scale, reg_epochs=args.reg_epochs,
                     command="app.py " + " ".join(sys.argv[1:]))
@@ -76,7 +76,7 @@ def cmd_ablate(args) -> int:
 
 
 def cmd_decimate(args) -> int:
-    from tracker.build.decimate import add_overlay_meshes
+    from tracker.training.decimate import add_overlay_meshes
     add_overlay_meshes(args.model, args.faces)
     print(f"{args.model}: overlay meshes of about {args.faces} faces added, manifest re-hashed")
     return 0
@@ -110,7 +110,7 @@ def cmd_models_info(args) -> int:
 
 
 def cmd_prepare_models(args) -> int:
-    from tracker.build.prepare import prepare_models
+    from tracker.training.prepare import prepare_models
     rep = prepare_models(args.models, args.out, units=args.units, log=print)
     print(f"wrote {args.out}: {len(rep)} object(s) in millimetres, models_info.json, names.json")
     return 0

@@ -19,11 +19,11 @@ from pathlib import Path
 
 import numpy as np
 
-from tracker.build.crops import bundle_training_crops, train_val_split
+from tracker.training.crops import bundle_training_crops, train_val_split
 from tracker.core.errors import UserError
 from tracker.core.geometry import (axis_angle_from_matrix, box_offset_of_centre, centre_from_box_offset, matrix_from_axis_angle,
                        matrix_from_quat, matrix_from_rot6d, quat_from_matrix, rot6d_from_matrix, rotation_error_deg)
-from tracker.build.fit_heads import BoostedTrees, KNNRegressor, NumpyMLP
+from tracker.training.fit_heads import BoostedTrees, KNNRegressor, NumpyMLP
 from tracker.runtime.heads import (Codebook, apparent_size, centre_inputs, distance_by_rotation_inputs, distance_inputs,
                                    rotation_inputs)
 

@@ -131,7 +131,7 @@ def calibration_inputs(split_dir, spec: DetectorSpec, n: int = CALIBRATION_IMAGE
     """``n`` images spread evenly over a ``synth`` split, letterboxed and normalised as at run
     time: (n, 3, H, W) float32. Synthetic renders only, never the evaluation frames."""
     from tracker.core.bop import load_scene
-    from tracker.build.crops import split_scene_dirs
+    from tracker.training.crops import split_scene_dirs
     scenes = [load_scene(s) for s in split_scene_dirs(split_dir)]
     frames = [(s, i) for s in scenes for i in s.im_ids]
     if not frames:

@@ -24,7 +24,7 @@ FIGURES = ("add_recall", "ar_mssd", "ar_mspd", "te_median_mm")
 
 
 def _scenes(data) -> list[Path]:
-    from tracker.build.crops import split_scene_dirs
+    from tracker.training.crops import split_scene_dirs
     return [Path(data)] if is_scene_dir(data) else split_scene_dirs(data)
 
 

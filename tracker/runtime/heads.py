@@ -1,6 +1,6 @@
 """The pose head at run time: regressors on the latent code, predict-only numpy, stored as
 arrays (``.npz``, read with ``allow_pickle=False``) plus a JSON description, so that loading a
-bundle cannot run code. Fitting lives in :mod:`tracker.build.fit_heads` (scikit-learn, torch).
+bundle cannot run code. Fitting lives in :mod:`tracker.training.fit_heads` (scikit-learn, torch).
 
 Features are camera-independent (see :func:`tracker.core.geometry.box_features`):
 - rotation: ``[mu, onehot]`` -> 6D (Zhou et al.) -> R;
@@ -9,7 +9,7 @@ Features are camera-independent (see :func:`tracker.core.geometry.box_features`)
 - distance: ``[mu, onehot, log w', log h']`` -> ``log(Tz * sqrt(w' h'))`` (the object's apparent
   size times its distance, about constant per view): k-nearest-neighbours, distance
   weighted, k and the weight of the box features chosen on validation, or an MLP where it
-  does better on validation (``tracker.build.train.choose_distance``);
+  does better on validation (``tracker.training.train.choose_distance``);
 - distance from rotation (optional, :func:`distance_by_rotation_inputs`): ``[6D of the
   ray-frame rotation, onehot, log w', log h']`` -> the same target, gradient-boosted trees
   (:class:`Trees`) fitted on the true rotations and fed the rotation regressor's
@@ -52,7 +52,7 @@ def _silu(x):
 class MLP:
     """A SiLU MLP evaluated with numpy: standardised input, ``layers_`` [(W, b)], SiLU between.
     ``loss`` names what it was trained for: 'l1_rotation' (output: 6D -> rotation matrix) or
-    'l1'. Trained by :class:`tracker.build.fit_heads.NumpyMLP`."""
+    'l1'. Trained by :class:`tracker.training.fit_heads.NumpyMLP`."""
 
     loss = "l1"
 
@@ -125,7 +125,7 @@ class StackedMLP:
 class DistanceKNN:
     """Distance-weighted KNN on ``[mu, onehot, box]`` with the box features weighted by
     ``box_weight`` after standardisation (``mean_``, ``scale_``); predicts the log of
-    Tz * sqrt(w' h'). Fitted by :class:`tracker.build.fit_heads.KNNRegressor`.
+    Tz * sqrt(w' h'). Fitted by :class:`tracker.training.fit_heads.KNNRegressor`.
 
     Brute-force search in numpy, float32 like the stored training set (the same neighbours
     and weights as scikit-learn's ``KNeighborsRegressor(weights='distance', algorithm='brute')``
@@ -187,7 +187,7 @@ class Trees:
     numpy (scikit-learn's ``HistGradientBoostingRegressor``'s own predict costs 20-40 ms per call
     whatever the batch, over the per-object budget; this walks every tree at once, one level per
     step). Numerical features only; NaN follows the trees' missing-value side. Fitted by
-    :class:`tracker.build.fit_heads.BoostedTrees`."""
+    :class:`tracker.training.fit_heads.BoostedTrees`."""
 
     _ARRAYS = {"roots": ("roots_", np.int64), "feature": ("feature_", np.int64), "threshold": ("threshold_", np.float64),
                "missing_left": ("missing_left_", bool), "leaf": ("leaf_", bool), "left": ("left_", np.int64),

@@ -19,7 +19,7 @@ from tracker.core.geometry import (box_offset_of_centre, centre_from_box_offset,
                        translation_from_centre)
 from tracker.runtime.overlay import LMO_NAMES
 from tracker.core.paths import work_dir
-from tracker.build.fit_heads import KNNRegressor, NumpyMLP
+from tracker.training.fit_heads import KNNRegressor, NumpyMLP
 from tracker.runtime.heads import (Codebook, HeadEnsemble, PoseHead, apparent_size, centre_inputs, distance_inputs,
                                    rotation_inputs, save_codebook, save_head)
 
@@ -128,7 +128,7 @@ def choose_distance_by_rotation(R_tr, idx_tr, n_obj, box_tr, K_tr, y_tr, R_va_es
     both fed estimated values ``R_va_est``), are recorded. Returns ``(trees, info)``. (An MLP
     on the same inputs, tried on models/lmo, raised that error from 33.1 to 36.1 mm where the
     trees lowered it to 31.3.)"""
-    from tracker.build.fit_heads import BoostedTrees
+    from tracker.training.fit_heads import BoostedTrees
     from tracker.runtime.heads import distance_by_rotation_inputs
     log("distance from rotation (gradient-boosted trees) ...")
     t0 = time.perf_counter()
@@ -149,7 +149,7 @@ def with_exact_boxes(cs, mu, cs_exact, mu_exact, tr, va):
     (median |dTz| 43.6 / 32.3 mm on jittered / exact boxes, against 46.8 / 41.5 from jittered
     boxes only, 59.9 / 31.5 from exact boxes only). Returns ``(cs, mu, tr, va)``; crops from
     ``len(cs)`` on are the exact-box ones."""
-    from tracker.build.crops import CropSet
+    from tracker.training.crops import CropSet
     if len(cs_exact) != len(cs) or not np.array_equal(cs_exact.obj_id, cs.obj_id):
         raise UserError("the exact-box crops do not match the jittered ones (different split or seed?)")
     n = len(cs)
@@ -248,11 +248,11 @@ def fit_head_sets(mu, cs, obj_ids, models_info, tr, va, rng, n_sets: int = 1, se
     among them all, so that the bundle stays as small as with one set. Three sets on one encoder:
     dev mean +0.018 and +0.021 over the single sets' mean (stops 47 and 49); in ``build`` +0.051
     (stop 51). ``cache_dir``: each set fitted is kept there, and one fitted before on the same
-    codes and options is loaded instead (:class:`~tracker.build.head_cache.HeadSetCache`)."""
+    codes and options is loaded instead (:class:`~tracker.training.head_cache.HeadSetCache`)."""
     fit_options["knn_max_rows"] = KNN_MAX_ROWS // n_sets
     cache = None
     if cache_dir is not None:
-        from tracker.build.head_cache import HeadSetCache
+        from tracker.training.head_cache import HeadSetCache
         cache = HeadSetCache(cache_dir, mu, cs, tr, va, obj_ids,
                              {**fit_options, "n_jittered": n_jittered, "validate": n_sets == 1})
 
@@ -342,16 +342,16 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
     ``head_sets``: head sets fitted (seeds ``seed``, ``seed + 1``, ...) and averaged
     (:func:`fit_head_sets`), each with ``reg_minutes``."""
     torch = require_torch()
-    from tracker.build.crops import CropSet, build_training_crops, crops_cache_path, train_val_split
+    from tracker.training.crops import CropSet, build_training_crops, crops_cache_path, train_val_split
     from tracker.core.meshes import load_models
-    from tracker.build.nets.autoencoder import ENCODERS, METHODS, AutoEncoder
-    from tracker.build.nets.fit import encode_all, onehot, to_tensor, train_autoencoder
-    from tracker.build.nets.precision import resolve, resolve_device
+    from tracker.training.nets.autoencoder import ENCODERS, METHODS, AutoEncoder
+    from tracker.training.nets.fit import encode_all, onehot, to_tensor, train_autoencoder
+    from tracker.training.nets.precision import resolve, resolve_device
     if method not in METHODS:
         raise UserError(f"unknown method '{method}' (choose from {', '.join(METHODS)})")
     if encoder not in ENCODERS:
         raise UserError(f"unknown encoder '{encoder}' (choose from {', '.join(ENCODERS)})")
-    from tracker.build.nets import distributed as dd
+    from tracker.training.nets import distributed as dd
     device = resolve_device(device)
     rank, n_proc = dd.init_from_env(device)  # under torchrun: several processes train the autoencoder
     torch.set_num_threads(2 if n_proc == 1 else max(1, (os.cpu_count() or 2) // n_proc))
@@ -445,7 +445,7 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
             raise UserError(f"exported encoder differs from torch by {diff:.2e} (> 1e-4)")
         from tracker.core.bop import save_models_info
         models = load_models(mdir, obj_ids)
-        from tracker.build.prepare import object_names
+        from tracker.training.prepare import object_names
         given = object_names(mdir)  # a folder made by 'lab prepare-models' names its objects
         objects = []
         for o in obj_ids:
@@ -496,7 +496,7 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
         write_manifest(dest, manifest)
         add_overlay_meshes(dest, OVERLAY_FACES, log=lambda *a: None)  # light meshes for the live overlay
 
-    from tracker.build.decimate import add_overlay_meshes
+    from tracker.training.decimate import add_overlay_meshes
     from tracker.core.bundle import read_verified_manifest, staged_bundle, write_manifest
     with staged_bundle(None, out) as stage:  # the old bundle stays until the new one is whole
         _write_bundle(stage, out.name)
@@ -513,10 +513,10 @@ def refit_heads(model_dir, data_dir, out_dir=None, seed: int = 0, reg_minutes: f
     ``keep_regressors``: keep its rotation, centre and latent distance regressors and fit only
     the distance-from-rotation trees and the codebook (for a ray-frame bundle made before the
     trees existed). ``jitter_scale``: the log-size noise of the jittered boxes (default
-    :data:`~tracker.build.crops.JITTER_SCALE`, what the autoencoder trained on)."""
+    :data:`~tracker.training.crops.JITTER_SCALE`, what the autoencoder trained on)."""
     require_torch()  # the MLPs train with torch
     from tracker.core.bundle import read_verified_manifest, staged_bundle, write_manifest
-    from tracker.build.crops import JITTER_SCALE, bundle_training_crops, crops_cache_path, train_val_split
+    from tracker.training.crops import JITTER_SCALE, bundle_training_crops, crops_cache_path, train_val_split
     from tracker.runtime.estimator import PoseEstimator
     jitter_scale = JITTER_SCALE if jitter_scale is None else jitter_scale
     t0 = time.perf_counter()

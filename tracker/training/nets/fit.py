@@ -15,9 +15,9 @@ from tqdm import tqdm
 
 from tracker.core.errors import UserError
 from tracker.core.files import write_whole
-from tracker.build.nets import precision as prec
-from tracker.build.nets.autoencoder import AutoEncoder, loss_terms
-from tracker.build.nets.schedule import LR_SCHEDULES, budget_lr
+from tracker.training.nets import precision as prec
+from tracker.training.nets.autoencoder import AutoEncoder, loss_terms
+from tracker.training.nets.schedule import LR_SCHEDULES, budget_lr
 
 KL_ALPHA = 0.1  # Table 4.6
 # a checkpoint inside an epoch at least this often (an epoch of 150 k crops takes 20 min on a CPU):
@@ -130,7 +130,7 @@ def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, ou
     A checkpoint is written after every epoch, every ``CHECKPOINT_SECONDS`` within one, and on
     Ctrl-C (or SIGTERM made Ctrl-C), which is then raised again; a resumed run goes on from the
     batch it stopped at, with the same order of crops and random draws. Returns the training history."""
-    from tracker.build.nets import distributed as dd
+    from tracker.training.nets import distributed as dd
     rank, n_proc = dd.world()  # several processes under torchrun: each takes its share of every batch
     if lr_schedule not in LR_SCHEDULES:
         raise UserError(f"unknown step-size schedule '{lr_schedule}' (choose from {', '.join(LR_SCHEDULES)})")

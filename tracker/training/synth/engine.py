@@ -29,13 +29,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from tracker.build.decimate import SYNTH_FACES
+from tracker.training.decimate import SYNTH_FACES
 from tracker.core.bop import write_json
 from tracker.core.camera import LMO_K
 from tracker.core.errors import UserError
 from tracker.core.visibility import scene_visibility
 from tracker.core import priors
-from tracker.build.synth.randomise import (Backgrounds, camera_effects, cast_shadows, composite, distractor_meshes, household_meshes,
+from tracker.training.synth.randomise import (Backgrounds, camera_effects, cast_shadows, composite, distractor_meshes, household_meshes,
                         jitter_colours, target_palette, texture_from_photos, tint_distractors,
                         list_backgrounds, sample_lights, sample_materials, sample_overhead_lights,
                         table_surface)
@@ -143,7 +143,7 @@ def _init_worker(cfg_dict: dict, models: dict | None = None):
         texture_from_photos(dis, bgs.images, np.random.default_rng([cfg.seed, 8]))
     meshes = {k: m.mesh for k, m in models.items()}
     if cfg.mesh_faces:
-        from tracker.build.decimate import decimate_mesh
+        from tracker.training.decimate import decimate_mesh
         meshes = {k: decimate_mesh(m, cfg.mesh_faces, cache=True) for k, m in meshes.items()}
     targets = dict(meshes)
     meshes.update({DISTRACTOR_BASE + i: m for i, m in enumerate(dis)})
@@ -453,7 +453,7 @@ def generate(cfg: SynthConfig, out_dir, n_images: int, workers: int = 2, batch: 
     from tracker.core.meshes import load_models
     models = load_models(cfg.models_dir, cfg.obj_ids)  # fail early (and warn once) on bad meshes
     if cfg.mesh_faces:  # here, once (a missing library is one error, not a broken pool); workers read the cache
-        from tracker.build.decimate import decimate_mesh
+        from tracker.training.decimate import decimate_mesh
         for m in models.values():
             decimate_mesh(m.mesh, cfg.mesh_faces, cache=True)
     if cfg.obj_ids is None:

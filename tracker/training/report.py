@@ -13,7 +13,7 @@ def _f(v, nd=3) -> str:
 def write_build_report(folder, work_root, stages: dict, recipe, planned: dict, names: dict) -> Path:
     """``folder``: the (staged) bundle; ``work_root``: the build's work folder (its splits and
     the held-out check's metrics); ``stages``: the build state. Returns report.md's path."""
-    from tracker.build.synth.preview import preview
+    from tracker.training.synth.preview import preview
     rep = Path(folder) / "report"
     rep.mkdir(parents=True, exist_ok=True)
     preview(Path(work_root) / "split_encoder", rep / "samples.png", n_scenes=6, n_crops=12)

@@ -2,7 +2,7 @@
 
 Stages, run in order; everything they make lives in ``MODEL_DIR.work/`` except the bundle:
 
-1. ``models``    the meshes -> a BOP models folder in mm (:mod:`tracker.build.prepare`)
+1. ``models``    the meshes -> a BOP models folder in mm (:mod:`tracker.training.prepare`)
 2. ``render``    a synthetic split (``synth``, the chosen pose prior, lit from the camera's side)
 3. ``render-det`` another (another seed; hard distractors, lit from above: what the detectors
    of ``models/lmo`` were trained on). With fewer objects than a scene holds, both repeat
@@ -20,9 +20,9 @@ renders for its share of the time, at least :data:`MIN_IMAGES` images, at most
 :data:`MAX_RATE` images per second of it and at most what this machine's memory holds,
 :func:`memory_cap`; a split that reaches its image count before its time leaves the rest to
 the three training stages, in proportion to their shares: :func:`share_out`), 48 % encoder (of which 10 points for the heads: three
-head sets averaged, :func:`tracker.build.train.fit_head_sets`; the autoencoder trains for what is
+head sets averaged, :func:`tracker.training.train.fit_head_sets`; the autoencoder trains for what is
 left of the 48 % after cutting the crops, and before the heads and the rest:
-:func:`tracker.build.train.training_minutes`), 30 % detector (its loading, validation and
+:func:`tracker.training.train.training_minutes`), 30 % detector (its loading, validation and
 export included), 2 % held-out check and report (40 renders and two evaluations: seconds). Each stage is cached by a hash of its options
 and of the stages it reads; a rerun of the same command skips finished stages, and
 ``train``/``train-detector`` resume from their checkpoints. Ctrl-C (or SIGTERM, as a cluster
@@ -41,7 +41,7 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from tracker.build.decimate import SYNTH_FACES
+from tracker.training.decimate import SYNTH_FACES
 from tracker.core.errors import UserError
 from tracker.core.files import write_whole
 
@@ -210,9 +210,9 @@ def build(recipe: Recipe, out_dir, log=print) -> dict:
         raise UserError(f"--head-sets must be a whole number of at least 1, not {recipe.head_sets}")
     if recipe.max_images is not None and not (isinstance(recipe.max_images, int) and recipe.max_images >= 1):
         raise UserError(f"--max-images must be a whole number of at least 1, not {recipe.max_images}")
-    from tracker.build.prepare import mesh_files
+    from tracker.training.prepare import mesh_files
     mesh_files(recipe.models)  # a bad --models fails before anything is written
-    from tracker.build.train import require_torch
+    from tracker.training.train import require_torch
     require_torch()  # and so does a missing 'train' extra, before minutes of rendering
     root = work_dir(out) / "build"
     root.mkdir(parents=True, exist_ok=True)
@@ -250,7 +250,7 @@ def build(recipe: Recipe, out_dir, log=print) -> dict:
     k_models = _key("models", mesh_fingerprint(recipe.models), recipe.units, recipe.objects)
 
     def do_models():
-        from tracker.build.prepare import prepare_models
+        from tracker.training.prepare import prepare_models
         shutil.rmtree(models_dir, ignore_errors=True)
         rep = prepare_models(recipe.models, models_dir, units=recipe.units, log=log)
         if recipe.objects:
@@ -262,7 +262,7 @@ def build(recipe: Recipe, out_dir, log=print) -> dict:
     obj_ids = recipe.objects or sorted(int(k) for k in got["objects"])
 
     # 2-3. the synthetic splits
-    from tracker.build.synth.engine import SynthConfig, generate
+    from tracker.training.synth.engine import SynthConfig, generate
     backgrounds = str(shared_data() / "backgrounds")
     p = plan(recipe)
     log(f"at most {p['max_images']:,} images per rendered split "
@@ -302,7 +302,7 @@ def build(recipe: Recipe, out_dir, log=print) -> dict:
     split_all = root / "split_all"
 
     def joined() -> Path:
-        from tracker.build.synth.join import join_splits
+        from tracker.training.synth.join import join_splits
         shutil.rmtree(split_all, ignore_errors=True)
         join_splits(split_all, [split_enc, split_det], command="build")
         return split_all
@@ -313,7 +313,7 @@ def build(recipe: Recipe, out_dir, log=print) -> dict:
                  *([recipe.head_sets] if recipe.head_sets != 1 else []))
 
     def do_encoder():
-        from tracker.build.train import train_bundle
+        from tracker.training.train import train_bundle
         prev = state.d.get("encoder", {}).get("key")
         if prev and prev != k_enc:  # another recipe: its checkpoints must not be resumed
             _forget(work_dir(out), ("ae_checkpoint.pt", "ae_best.pt"), log)
@@ -331,7 +331,7 @@ def build(recipe: Recipe, out_dir, log=print) -> dict:
     k_det = _key("detector", k_enc, k_render_det, p["detector_minutes"], recipe.detector_backbone, recipe.seed)
 
     def do_detector():
-        from tracker.build.detector_train import train_detector
+        from tracker.training.detector_train import train_detector
         prev = state.d.get("detector", {}).get("key")
         if prev and prev != k_det:  # another recipe or split: its checkpoint must not be resumed
             _forget(work_dir(out), ("detector_ckpt_*.pt",), log)
@@ -382,7 +382,7 @@ def build(recipe: Recipe, out_dir, log=print) -> dict:
 
 def _record_recipe(out: Path, root: Path, recipe: Recipe, planned: dict, stages: dict) -> None:
     """The report into the bundle (report/) and the recipe into its manifest, in one staged write."""
-    from tracker.build.build_report import write_build_report
+    from tracker.training.report import write_build_report
     from tracker.core.bundle import update_manifest
 
     def change(manifest, folder):

@@ -51,14 +51,14 @@ class CenterNetLite(nn.Module):
 
 class CenterNetPretrained(nn.Module):
     """The same heads and top-down pathway as :class:`CenterNetLite` on an ImageNet-pretrained
-    EfficientNet-Lite trunk (:mod:`tracker.build.nets.backbone`, BatchNorm frozen): its stride
+    EfficientNet-Lite trunk (:mod:`tracker.training.nets.backbone`, BatchNorm frozen): its stride
     8 / 16 / 32 features, each brought to ``2 x width`` channels by a 1x1 convolution, merged
     top-down to stride 8. Takes the weights' input range: the detector spec's mean 127/255 and
     std 128/255 (:data:`IMAGENET_MEAN_STD`)."""
 
     def __init__(self, n_classes: int, width: int = 32, trunk: str = "lite0", pretrained: bool = True):
         super().__init__()
-        from tracker.build.nets.backbone import LiteTrunk
+        from tracker.training.nets.backbone import LiteTrunk
         w = 2 * width
         self.n_classes = n_classes
         self.trunk = LiteTrunk(trunk, pretrained)

@@ -10,7 +10,7 @@ import time
 from pathlib import Path
 
 from tracker.core.bop import load_scene
-from tracker.build.crops import split_scene_dirs
+from tracker.training.crops import split_scene_dirs
 from tracker.core.errors import UserError
 
 MUST_AGREE = ("models_dir", "obj_ids", "prior", "width", "height", "K")

@@ -22,13 +22,13 @@ import numpy as np
 from tqdm import tqdm
 
 from tracker.core.bop import load_scene
-from tracker.build.crops import split_fingerprint, split_scene_dirs, train_val_split
+from tracker.training.crops import split_fingerprint, split_scene_dirs, train_val_split
 from tracker.runtime.detector import BOX_KINDS, DetectorSpec, decode, letterbox, normalise
 from tracker.core.errors import UserError
 from tracker.core.files import write_whole
 from tracker.core.paths import work_dir
 from tracker.core.visibility import mask_box
-from tracker.build.nets.schedule import budget_lr
+from tracker.training.nets.schedule import budget_lr
 
 MIN_VISIB = 0.1
 CUTOUT_MAX_SIDE = 160  # px a cut-out is kept at; pastes reach 40 % of the input width (128 px at 320)
@@ -392,7 +392,7 @@ def _weights_from_bundle(torch, path, width: int, classes: list[int]) -> dict:
     import onnx
     from onnx import numpy_helper
     from tracker.runtime.detector import float_detector, run_graph
-    from tracker.build.nets.detector import CenterNetLite, state_from_export
+    from tracker.training.nets.detector import CenterNetLite, state_from_export
     # verified; joined or int8 detectors refused
     _, spec, _, onnx_path = float_detector(path, "start from the bundle of one of the networks it was made from")
     if spec.classes != classes:
@@ -476,7 +476,7 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
         raise UserError(f"--boxes must be one of {', '.join(BOX_KINDS)}, not '{box_kind}'")
     if colour not in COLOUR_AUGS:
         raise UserError(f"--colour must be one of {', '.join(COLOUR_AUGS)}, not '{colour}'")
-    from tracker.build.nets.detector import BACKBONES, IMAGENET_MEAN_STD
+    from tracker.training.nets.detector import BACKBONES, IMAGENET_MEAN_STD
     if backbone not in BACKBONES:
         raise UserError(f"--backbone must be one of {', '.join(BACKBONES)}, not '{backbone}'")
     if backbone != "plain" and init_from and Path(init_from).is_dir():
@@ -490,13 +490,13 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     if cutout_share is not None and not cutouts:
         raise UserError("--cutout-share is the share of images that get cut-outs: it needs --cutouts DIR as well")
     cutout_images, cutout_set = load_cutouts(cutouts, log) if cutouts else (None, None)
-    from tracker.build.train import require_torch
+    from tracker.training.train import require_torch
     torch = require_torch()
     from tracker.core.bundle import open_bundle, update_manifest
     from tracker.evaluation.detection_metrics import detection_ap
-    from tracker.build.nets import precision as prec
-    from tracker.build.nets.detector import Logits, focal_loss, freeze_batchnorm, make_detector
-    from tracker.build.nets import distributed as dd
+    from tracker.training.nets import precision as prec
+    from tracker.training.nets.detector import Logits, focal_loss, freeze_batchnorm, make_detector
+    from tracker.training.nets import distributed as dd
     from tracker.evaluation.report import fmt_num
     bundle = open_bundle(bundle_dir)  # verified before anything is changed
     device = prec.resolve_device(device)

@@ -9,7 +9,7 @@
 Encoders: ``plain`` (strided convs, CVML-base), ``resnet`` (residual blocks with a
 strided 1x1 shortcut, the ResNet-style encoder of CVML-18 at CPU width; for cvam the label
 goes into every block), or ``lite0``/``lite1``/``lite2``: an ImageNet-pretrained
-EfficientNet-Lite trunk (:mod:`tracker.build.nets.backbone`, BatchNorm frozen), a 1x1 conv to
+EfficientNet-Lite trunk (:mod:`tracker.training.nets.backbone`, BatchNorm frozen), a 1x1 conv to
 128 channels and the latent layers (for cvam the label joins there: the pretrained layers
 take images only). Every conv of encoder and decoder is followed by BatchNorm (``norm``, on
 by default; export folds it into the conv) and SiLU, nearest-neighbour upsampling + conv
@@ -72,7 +72,7 @@ class Encoder(nn.Module):
         self.size, self.latent, self.n_cond, self.variational = size, latent, n_cond, variational
         self.trunk = None
         if arch in PRETRAINED:
-            from tracker.build.nets.backbone import FEATURES, LiteTrunk
+            from tracker.training.nets.backbone import FEATURES, LiteTrunk
             if size % 32:
                 raise ValueError(f"a pretrained trunk needs a crop size that is a multiple of 32, not {size}")
             self.trunk = LiteTrunk(arch, pretrained)
