@@ -155,6 +155,21 @@ def test_symmetry_transforms_discretise_continuous_ones():
     assert all(np.allclose(t[:3, :3] @ t[:3, :3].T, np.eye(3)) for t in T)
 
 
+def test_continuous_symmetries_follow_bop_toolkits_default_step():
+    # bop_toolkit: ceil(pi / max_sym_disc_step) with 0.01 -> 315 steps of 2 pi / 315 about the axis,
+    # identity first, with the offset kept fixed: t = offset - R @ offset
+    info = {"diameter": 100.0, "symmetries_continuous": [{"axis": [0, 0, 1], "offset": [0, 10.0, 0]}]}
+    T = bop.symmetry_transforms(info)
+    assert T.shape == (315, 4, 4)
+    step = 2 * np.pi / 315
+    c, s = np.cos(step), np.sin(step)
+    assert np.allclose(T[0], np.eye(4))
+    assert np.allclose(T[1][:3, :3], [[c, -s, 0], [s, c, 0], [0, 0, 1]])
+    assert np.allclose(T[1][:3, 3], np.array([0, 10.0, 0]) - T[1][:3, :3] @ [0, 10.0, 0])
+    # a point 50 mm off the axis of a 100-mm object moves 0.997 mm a step: within 1 % of the diameter
+    assert 50 * step < 0.01 * 100
+
+
 def test_models_info_round_trip(tmp_path):
     info = {1: {"diameter": 102.1, "min_x": -1.0}, 10: {"diameter": 164.6}}
     bop.save_models_info(tmp_path / "models_info.json", info)

@@ -352,12 +352,18 @@ def save_models_info(path, info: dict[int, dict]) -> Path:
     return write_json(path, {str(k): info[k] for k in sorted(info)})
 
 
-def symmetry_transforms(info: dict, continuous_steps: int = 360) -> np.ndarray:
+# bop_toolkit's max_sym_disc_step (0.01: the vertex farthest from the axis travels at most 1 % of
+# the diameter between two steps) gives ceil(pi / 0.01) = 315 steps per continuous symmetry
+BOP_CONTINUOUS_STEPS = int(np.ceil(np.pi / 0.01))
+
+
+def symmetry_transforms(info: dict, continuous_steps: int = BOP_CONTINUOUS_STEPS) -> np.ndarray:
     """All symmetry transforms of one object as (S, 4, 4), identity first.
 
     Discrete symmetries are taken as listed; continuous ones are discretised into
-    ``continuous_steps`` rotations about their axis, and combined with the discrete ones,
-    as in bop_toolkit's ``get_symmetry_transformations``.
+    ``continuous_steps`` rotations about their axis (steps 0 .. N-1 of 2 pi / N), and combined
+    with the discrete ones (continuous @ discrete, discrete outer), as bop_toolkit's
+    ``get_symmetry_transformations`` does with its default ``max_sym_disc_step`` of 0.01.
     """
     disc = [np.eye(4)]
     for s in info.get("symmetries_discrete", []):
