@@ -21,20 +21,24 @@ def bop_csv_name(method: str, dataset: str = "lmo", split: str = "test") -> str:
 
 def evaluate(model_dir, scene_dir, json_path=None, boxes: str = "gt", mode: str = "regression",
              bop_csv=None, max_frames: int | None = None, progress: bool = True,
-             detector_trees_weight: float | None = None, gt_models=None) -> dict:
+             detector_trees_weight: float | None = None, gt_models=None, per_instance=None) -> dict:
     """``detector_trees_weight``: the trees' share of the distance for the detector's boxes in
     place of the bundle's (``app.py lab tune-heads`` tries several).
 
     A bundle of some of the scene's objects (``build --objects``) is scored on the instances
     of its objects; the others still hide parts of them when their meshes are found
     (``gt_models``, else a BOP ``models/`` folder beside or above the scene that has them),
-    else they are left out (visibility from the bundle's objects alone, said on stderr)."""
+    else they are left out (visibility from the bundle's objects alone, said on stderr).
+
+    ``per_instance``: a CSV to write with one row per scored ground-truth instance (its errors,
+    pass / fail per threshold: :func:`tracker.evaluation.scoring.per_instance_rows`), the input of
+    ``app.py lab compare``."""
     from tracker.core.meshes import load_models
     from tracker.evaluation.scoring import score_results, write_metrics_json
     if boxes not in ("gt", "detector"):
         raise UserError(f"--boxes must be gt or detector, not '{boxes}'")
     from tracker.core.bop import check_output_file
-    for f, what in ((json_path, "--json"), (bop_csv, "--bop-csv")):
+    for f, what in ((json_path, "--json"), (bop_csv, "--bop-csv"), (per_instance, "--per-instance")):
         if f is not None:
             check_output_file(f, what)
     est = PoseEstimator(model_dir)
@@ -93,9 +97,14 @@ def evaluate(model_dir, scene_dir, json_path=None, boxes: str = "gt", mode: str 
         base = Path(json_path).parent if json_path else Path(".")
         bop_csv = base / bop_csv_name(name)
     write_results(bop_csv, results)
+    records = []
     m = score_results(bop_csv, scene_dir, mesh_dir, models_info=mesh_dir / "models_info.json", im_ids=im_ids,
                       scene_id=0, ms_per_image=1000 * t_all / len(im_ids), obj_ids=sorted(ours) if others else None,
-                      visibility_models_dir=vis_dir)
+                      visibility_models_dir=vis_dir, records_out=records)
+    if per_instance is not None:
+        from tracker.evaluation.scoring import per_instance_rows, write_per_instance
+        write_per_instance(per_instance, per_instance_rows(records))
+        m["per_instance"] = str(per_instance)
     if detector is not None:
         from tracker.evaluation.detection_metrics import detection_ap
         gts = [[(o, b) for o, b, _ in gt_instances_with_boxes(scene.gt[i], box_of[i], 0.1) if o in ours]

@@ -213,6 +213,11 @@ class _GtRecord:
     re: float | None       # of the estimate matched without threshold (None: no estimate)
     te: float | None
     vsd_hit: np.ndarray | None = None  # (len(VSD_TAUS), len(VSD_THS)) bool, with depth only
+    im_id: int = -1
+    gt_index: int = -1                 # its index in the image's scene_gt.json list
+    mssd: float | None = None          # errors of the estimate matched without threshold: / diameter,
+    mspd: float | None = None          # px at 640 px width,
+    add: float | None = None           # / diameter (ADI for symmetric objects)
 
 
 def _errors(est: list[Estimate], gts: list, obj: ObjectEval, K: np.ndarray, r: float,
@@ -247,12 +252,13 @@ def _errors(est: list[Estimate], gts: list, obj: ObjectEval, K: np.ndarray, r: f
 def score_estimates(estimates: list[Estimate], scene: Scene, objects: dict[int, ObjectEval],
                     visib: dict[int, list[float]], image_width: int, im_ids=None,
                     visibility_source: str | None = None, ms_per_image: float | None = None,
-                    detection: dict | None = None, depth_renderer=None) -> dict:
+                    detection: dict | None = None, depth_renderer=None, records_out: list | None = None) -> dict:
     """Metrics JSON (CONVENTIONS.md) of ``estimates`` on ``scene``'s images ``im_ids``.
 
     ``estimates`` must already be those of this scene (any scene_id); ``objects`` covers
     every object of the GT and the estimates; ``visib`` gives every GT instance's visible
-    fraction (:func:`gt_visibility`).
+    fraction (:func:`gt_visibility`). ``records_out``: a list that gets every scored
+    ground-truth instance's record (:func:`per_instance_rows` turns them into rows).
     """
     if scene.gt is None:
         raise UserError(f"{scene.root}: no scene_gt.json, nothing to score against")
@@ -294,11 +300,17 @@ def score_estimates(estimates: list[Estimate], scene: Scene, objects: dict[int, 
                 if not valid[k]:
                     continue
                 m = loose[k]
+                got = m >= 0
                 records.append(_GtRecord(oid, float(vis[j]), mssd_hit[k], mspd_hit[k], bool(add_hit[k]),
                                          bool(rete_hit[k]),
-                                         float(err["rete"][m, k, 0]) if m >= 0 else None,
-                                         float(err["rete"][m, k, 1]) if m >= 0 else None,
-                                         None if vsd_hit is None else vsd_hit[k]))
+                                         float(err["rete"][m, k, 0]) if got else None,
+                                         float(err["rete"][m, k, 1]) if got else None,
+                                         None if vsd_hit is None else vsd_hit[k], im_id=int(i), gt_index=int(j),
+                                         mssd=float(err["mssd"][m, k, 0]) if got else None,
+                                         mspd=float(err["mspd"][m, k, 0]) if got else None,
+                                         add=float(err["add"][m, k, 0]) if got else None))
+    if records_out is not None:
+        records_out.extend(records)
     n_est = sum(n_est_obj.values())
     out = _summary(records, n_est)
     out["confidence"] = confidence_ranking(by_im, scene, objects, visib, im_ids)
@@ -402,6 +414,43 @@ def _by_visibility(records: list[_GtRecord]) -> list[dict]:
     return out
 
 
+def per_instance_rows(records: list[_GtRecord], scene_id: int = 0) -> list[dict]:
+    """One row per scored ground-truth instance: its matched estimate's errors (empty where
+    nothing was estimated) and pass (1) / fail (0) at every threshold of ADD(I), MSSD, MSPD and
+    5 deg 5 cm; ``mssd_recall`` / ``mspd_recall`` are its share of thresholds passed (the mean of
+    a column over the instances is the AR): the file ``eval --per-instance`` writes."""
+    def num(v, nd):
+        return "" if v is None else round(float(v), nd)
+    rows = []
+    for rc in sorted(records, key=lambda r: (r.im_id, r.gt_index)):
+        row = {"scene_id": scene_id, "im_id": rc.im_id, "gt_index": rc.gt_index, "obj_id": rc.obj_id,
+               "visib_fract": round(rc.visib, 4), "estimated": int(rc.re is not None),
+               "add": num(rc.add, 5), "mssd": num(rc.mssd, 5), "mspd_px": num(rc.mspd, 3),
+               "re_deg": num(rc.re, 3), "te_mm": num(rc.te, 3),
+               "add_pass": int(rc.add_hit), "rete_pass": int(rc.rete_hit),
+               "mssd_recall": round(float(np.mean(rc.mssd_hit)), 4),
+               "mspd_recall": round(float(np.mean(rc.mspd_hit)), 4)}
+        row.update({f"mssd_pass@{t:.2f}": int(h) for t, h in zip(MSSD_THS, rc.mssd_hit)})
+        row.update({f"mspd_pass@{t:g}": int(h) for t, h in zip(MSPD_THS, rc.mspd_hit)})
+        rows.append(row)
+    return rows
+
+
+def write_per_instance(path, rows: list[dict]) -> Path:
+    """The per-instance CSV (written whole)."""
+    import csv
+    from tracker.core.files import write_whole
+    if not rows:
+        raise UserError("no ground-truth instance was scored; nothing to write per instance")
+
+    def write(tmp):
+        with open(tmp, "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=list(rows[0]))
+            w.writeheader()
+            w.writerows(rows)
+    return write_whole(path, write)
+
+
 # --------------------------------------------------------------------------- files
 
 
@@ -420,7 +469,8 @@ def _pick_scene_id(estimates: list[Estimate], scene: Scene, scene_id: int | None
 
 def score_results(results_csv, scene_dir, models_dir, models_info=None, im_ids=None,
                   scene_id: int | None = None, ms_per_image: float | None = None,
-                  detection: dict | None = None, obj_ids=None, visibility_models_dir=None) -> dict:
+                  detection: dict | None = None, obj_ids=None, visibility_models_dir=None,
+                  records_out: list | None = None) -> dict:
     """Score a BOP results CSV against the BOP scene ``scene_dir`` (with ground truth).
 
     ``models_info``: dict or file; by default ``models_dir/models_info.json``, else computed
@@ -500,7 +550,7 @@ def score_results(results_csv, scene_dir, models_dir, models_info=None, im_ids=N
             ms_per_image = 1000.0 * float(np.mean(list(times.values())))
     try:
         return score_estimates(estimates, scene, objects, visib, width, im_ids, source, ms_per_image, detection,
-                               depth_renderer)
+                               depth_renderer, records_out=records_out)
     finally:
         if depth_renderer is not None:
             depth_renderer.close()
