@@ -1,6 +1,7 @@
 """The CLI as a user meets it: exit codes and one-line errors, no tracebacks."""
 import subprocess
 import sys
+from pathlib import Path
 
 
 from tests.conftest import REPO
@@ -28,6 +29,17 @@ def test_help_lists_the_commands():
         assert f"    {c}" in p.stdout
 
 
+def test_the_console_script_is_the_same_command_line(tmp_path):
+    script = Path(sys.executable).parent / "autopose"  # [project.scripts] in pyproject.toml, by pip install -e .
+    assert script.is_file(), f"no {script}: reinstall with pip install --no-deps -e ."
+    for args in (["--help"], ["lab"], ["calibrate", "--board", "9x6", "--square", 25, "--out", tmp_path / "c.yaml"],
+                 ["no-such-command"]):
+        a = run(*args)
+        b = subprocess.run([str(script), *map(str, args)], capture_output=True, text=True, timeout=300, cwd=REPO)
+        assert (b.returncode, b.stdout, b.stderr) == (a.returncode, a.stdout, a.stderr), args
+        assert a.returncode == {"--help": 0, "lab": 2, "calibrate": 1, "no-such-command": 2}[args[0]], a.stderr
+
+
 def test_join_detectors_bad_input_is_a_one_line_error(tmp_path):
     p = run("lab", "join-detectors", "--model", REPO / "models" / "lmo", "--from", tmp_path, "--out", tmp_path / "j")
     assert_one_line_error(p)
@@ -53,7 +65,7 @@ def test_bad_bundle_and_bad_source_are_one_line_errors(tmp_path, data_dir):
     assert "manifest.json" in p.stderr
     p = run("lab", "refit-heads", "--model", REPO / "models" / "lmo", "--data", tmp_path, "--out", tmp_path / "b")
     assert_one_line_error(p)
-    assert "synth_config.json" in p.stderr or "train" in p.stderr  # no training data (or no torch)
+    assert p.stderr.strip() == f"error: {tmp_path}: no synth_config.json; make training data with 'app.py synth'"
     assert not (tmp_path / "b").exists()
     (tmp_path / "empty.mp4").write_bytes(b"")
     for source in ("/dev/video7", tmp_path / "empty.mp4"):  # no OpenCV / FFmpeg log lines before ours

@@ -6,9 +6,12 @@ import sys
 
 from tests.conftest import REPO
 
-# a meta-path hook that makes torch (and its submodules) unimportable, then app.py as __main__
+# a meta-path hook that makes torch (and its submodules) unimportable, then app.py as __main__; with
+# MODULES_OUT set, the names of the modules loaded when the process ends are written to that file
 BLOCK = """
-import sys, runpy
+import atexit, os, sys, runpy
+if os.environ.get("MODULES_OUT"):
+    atexit.register(lambda: open(os.environ["MODULES_OUT"], "w").write("\\n".join(sorted(sys.modules))))
 class NoTorch:
     def find_spec(self, name, path=None, target=None):
         if name == "torch" or name.startswith("torch."):
@@ -20,9 +23,9 @@ runpy.run_path("app.py", run_name="__main__")
 """
 
 
-def _app(*args, cwd=REPO):
+def _app(*args, cwd=REPO, env=None):
     return subprocess.run([sys.executable, "-c", BLOCK, *map(str, args)], cwd=cwd, capture_output=True, text=True,
-                          timeout=600, env={"PYOPENGL_PLATFORM": "egl", "PATH": "/usr/bin:/bin"})
+                          timeout=600, env={"PYOPENGL_PLATFORM": "egl", "PATH": "/usr/bin:/bin", **(env or {})})
 
 
 def test_the_demo_runs_with_torch_unimportable(data_dir, tmp_path):
@@ -31,6 +34,17 @@ def test_the_demo_runs_with_torch_unimportable(data_dir, tmp_path):
     s = json.loads((tmp_path / "demo" / "summary.json").read_text())
     assert s["frames"] == 3 and s["poses"] > 10 and s["error"] is None
     assert (tmp_path / "demo" / "recording.rrd").stat().st_size > 0
+
+
+def test_the_demo_imports_no_training_code(tmp_path):
+    """The real entry point: everything app.py demo loaded, read when its process ends."""
+    modules = tmp_path / "modules.txt"
+    p = _app("demo", "--max-frames", 2, "--rerun", "off", "--out", tmp_path / "demo", env={"MODULES_OUT": str(modules)})
+    assert p.returncode == 0, p.stderr[-2000:]
+    loaded = modules.read_text().split("\n")
+    assert {"tracker.cli.main", "tracker.runtime.loop", "tracker.evaluation.track"} <= set(loaded)  # the demo ran
+    training = [m for m in loaded if m in ("torch", "tracker.training") or m.startswith(("torch.", "tracker.training."))]
+    assert training == []
 
 
 def test_eval_runs_with_torch_unimportable(data_dir, tmp_path):

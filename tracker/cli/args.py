@@ -59,7 +59,7 @@ def id_list(text: str) -> list[int]:
 
 
 def add_precision(s) -> None:
-    from tracker.training.nets.precision import PRECISIONS  # no torch import
+    from tracker.core.defaults import PRECISIONS
     s.add_argument("--precision", choices=PRECISIONS, default="auto",
                    help="arithmetic of the training passes: bf16 (bfloat16 autocast, faster where "
                         "the CPU has it natively), fp32, or auto (bf16 where native)")

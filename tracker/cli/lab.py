@@ -7,7 +7,8 @@ from pathlib import Path
 
 from tracker.cli.args import (add_join, add_regressor_budget, jpeg_quality, nonnegative_int, positive_float,
                               positive_int)
-from tracker.cli.jobs import _default_run_dir, _print_validation
+from tracker.cli.common import default_run_dir as _default_run_dir
+from tracker.cli.common import print_validation as _print_validation
 
 
 def _print_preview(s) -> None:
@@ -116,6 +117,23 @@ def cmd_prepare_models(args) -> int:
     return 0
 
 
+def cmd_compare(args) -> int:
+    from tracker.core.bop import check_output_file, write_json
+    from tracker.evaluation.compare import compare_files
+    check_output_file(args.json, "--json")
+    r = compare_files(args.a, args.b, n_boot=args.bootstrap, seed=args.seed)
+    write_json(args.json, r)
+    print(f"B - A over {r['n_instances']} instances in {r['n_frames']} frames (paired bootstrap over frames, "
+          f"{r['bootstrap']} resamples, 95 % interval):")
+    for name, f in r["figures"].items():
+        print(f"  {name:>10}  A {f['a']:.4f}  B {f['b']:.4f}  diff {f['diff']:+.4f}  [{f['ci'][0]:+.4f}, {f['ci'][1]:+.4f}]")
+    v = r["verdict"]
+    print(("keep B" if v["keep_b"] else "keep A") + f" ({v['rule']})"
+          + (f"; falls: {', '.join(v['falls'])}" if v["falls"] else ""))
+    print(f"wrote {args.json}")
+    return 0
+
+
 def add_commands(sub, REPO) -> None:
     """The research tools, each a sub-parser of ``sub`` (the ``lab`` group)."""
     s = sub.add_parser("join-splits", help="one training split made of several 'synth' splits (linked)")
@@ -218,6 +236,15 @@ def add_commands(sub, REPO) -> None:
     s.add_argument("--units", choices=["auto", "mm", "cm", "m"], default="auto",
                    help="the meshes' unit; auto refuses a mesh under 5 units across (it looks like metres)")
     s.set_defaults(func=cmd_prepare_models)
+
+    s = sub.add_parser("compare", help="two 'eval --per-instance' files of one scene: each figure's difference "
+                                       "with a paired-bootstrap 95 % interval over frames, and the keep rule")
+    s.add_argument("a", help="per-instance CSV of the baseline (A)")
+    s.add_argument("b", help="per-instance CSV of the variant (B)")
+    s.add_argument("--json", required=True, help="comparison JSON to write")
+    s.add_argument("--bootstrap", type=positive_int, default=10000, metavar="N", help="resamples (default 10000)")
+    s.add_argument("--seed", type=nonnegative_int, default=0)
+    s.set_defaults(func=cmd_compare)
 
     s = sub.add_parser("models-info", help="compute BOP models_info.json (diameter, box, symmetries)")
     s.add_argument("--models", required=True, help="folder of obj_NNNNNN.ply")

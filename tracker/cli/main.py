@@ -32,7 +32,19 @@ def _lab_help(parser) -> int:
     return 2
 
 
+def _process_env() -> None:
+    """Settings read when a library loads, so set before the commands import it (as app.py does, for
+    the console script ``autopose`` too)."""
+    if not os.environ.get("AUTOPOSE_DEBUG"):  # before OpenCV loads: its and FFmpeg's own log lines
+        os.environ.setdefault("OPENCV_LOG_LEVEL", "ERROR")  # would come before our one-line errors
+        os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
+    # torch's CPU allocator: blocks of 2 MB and more on transparent huge pages (read before torch allocates)
+    os.environ.setdefault("THP_MEM_ALLOC_ENABLE", "1")
+
+
 def main(argv=None) -> int:
+    """``python app.py`` and the console script ``autopose``: the exit status."""
+    _process_env()
     argv = sys.argv[1:] if argv is None else list(argv)
     parser = build_parser()
     if not argv:

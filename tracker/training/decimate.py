@@ -12,10 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
+from tracker.core.defaults import SYNTH_FACES  # noqa: F401  (synth's and build's default face count, stop 47)
 from tracker.core.errors import UserError
 
-# synth's and build's default: the objects rendered at about this many faces (stop 47)
-SYNTH_FACES = 4000
 # part of the cache's key: raise it when _decimate's result changes (not only the library's version)
 CACHE_VERSION = 1
 

@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import contextlib
 
-PRECISIONS = ("auto", "bf16", "fp32")
+from tracker.core.defaults import PRECISIONS
+
 DEVICES = ("auto", "cpu", "cuda")
 
 

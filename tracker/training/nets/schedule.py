@@ -3,7 +3,8 @@ from __future__ import annotations
 
 import math
 
-LR_SCHEDULES = ("budget", "plateau")  # the autoencoder's choices (train --lr-schedule)
+from tracker.core.defaults import LR_SCHEDULES  # noqa: F401  (the autoencoder's choices, train --lr-schedule)
+
 FLOOR = 0.02  # the step size at the end of the budget, as a share of the initial one
 
 

@@ -29,9 +29,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from tracker.training.decimate import SYNTH_FACES
 from tracker.core.bop import write_json
 from tracker.core.camera import LMO_K
+from tracker.core.defaults import SYNTH_FACES
 from tracker.core.errors import UserError
 from tracker.core.visibility import scene_visibility
 from tracker.core import priors
