@@ -119,7 +119,7 @@ def test_results_csv_round_trip(tmp_path):
 
 
 @pytest.mark.parametrize("mutate,match", [
-    (lambda lines: ["scene_id,im_id,obj_id,score,R,t"] + [l.rsplit(",", 1)[0] for l in lines[1:]], "missing column"),
+    (lambda lines: ["scene_id,im_id,obj_id,score,R,t"] + [ln.rsplit(",", 1)[0] for ln in lines[1:]], "missing column"),
     (lambda lines: lines[:2] + [lines[2].replace("0.9000", "abc")], ":3: unparsable"),
     (lambda lines: lines[:1] + [lines[1].replace(lines[1].split(",")[4], " ".join(["1"] * 9))] + lines[2:], ":2: R is not a rotation"),
     (lambda lines: lines[:2] + [lines[2].replace(",0.020000", ",0.030000")], ":3: time"),

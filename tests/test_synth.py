@@ -471,7 +471,7 @@ def test_shards_joined_are_the_split_rendered_at_once(small_split, tmp_path, dat
             for i in sc.im_ids:
                 got[i] = (sc, d)
     assert sorted(got) == list(range(8))
-    for i, (sc, d) in got.items():
+    for i, (sc, _) in got.items():
         assert np.array_equal(sc.read_rgb(i), whole.read_rgb(i)), i
         assert [g.obj_id for g in sc.gt[i]] == [g.obj_id for g in whole.gt[i]]
         assert np.allclose([g.t for g in sc.gt[i]], [g.t for g in whole.gt[i]])
@@ -525,7 +525,7 @@ def test_repeat_objects_fills_an_image_of_few_objects_with_instances_of_them(dat
     for i in scene.im_ids:
         ids = [g.obj_id for g in scene.gt[i]]
         assert len(ids) >= 3 and set(ids) == set(two)
-        for k, g in enumerate(scene.gt[i]):  # every instance has its own mask and clean target
+        for k in range(len(scene.gt[i])):  # every instance has its own mask and clean target
             assert (tmp_path / "r" / "000000" / "mask_visib" / f"{i:06d}_{k:06d}.png").is_file()
             assert (tmp_path / "r" / "000000" / "clean" / f"{i:06d}_{k:06d}.png").is_file()
     assert json.loads((tmp_path / "r" / "synth_config.json").read_text())["config"]["repeat_objects"] is True

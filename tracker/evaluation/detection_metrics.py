@@ -45,7 +45,7 @@ def detection_ap(detections, ground_truth, classes, ignore=None) -> dict:
             used = [np.zeros(len(g), bool) for g in gt]
             used_ig = [np.zeros(len(g), bool) for g in ig]  # an ignored instance absorbs one detection
             hits, keep = [], []
-            for i, s, b in dets:
+            for i, _, b in dets:
                 ious = iou_matrix(b[None], gt[i])[0] if len(gt[i]) else np.zeros(0)
                 ious = np.where(used[i], -1, ious)
                 iig = np.where(used_ig[i], -1, iou_matrix(b[None], ig[i])[0]) if len(ig[i]) else np.zeros(0)
