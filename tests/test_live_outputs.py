@@ -27,8 +27,8 @@ FIX = Path(__file__).parent / "fixtures"
 
 def test_track_writes_the_annotated_video_frames_status_and_confidences(tiny_bundle, data_dir, tmp_path):
     out, video, frames = tmp_path / "run", tmp_path / "run.mp4", tmp_path / "frames"
-    s = track(TrackConfig(str(data_dir / "lmo" / "dev"), str(tiny_bundle), out, rerun="save", max_frames=3,
-                          video_out=str(video), frames_out=str(frames)), log=lambda m: None)
+    track(TrackConfig(str(data_dir / "lmo" / "dev"), str(tiny_bundle), out, rerun="save", max_frames=3,
+                      video_out=str(video), frames_out=str(frames)), log=lambda m: None)
     cap = cv2.VideoCapture(str(video))
     n = 0
     while cap.read()[0]:
@@ -140,21 +140,114 @@ def test_spawn_without_a_display_is_one_clear_error(tmp_path, monkeypatch):
         RerunSink("spawn", tmp_path, {}, {}, np.eye(3), (640, 480))
 
 
-def test_serve_saves_the_recording_and_holds_until_told(tmp_path):
+def _serve_or_skip(tmp_path, **kw):
     if port_taken(RERUN_GRPC_PORT) or port_taken(RERUN_WEB_PORT):
         pytest.skip("rerun's ports are in use on this machine")
-    sink = RerunSink("serve", tmp_path, {}, {1: "ape"}, np.eye(3), (64, 48))
-    assert sink.url.startswith(f"http://localhost:{RERUN_WEB_PORT}/?url=rerun+http://127.0.0.1:{RERUN_GRPC_PORT}")
-    for i in range(3):
-        sink.log_frame(i, np.zeros((48, 64, 3), np.uint8), None, [], [_pose(1, 0.7)], status=f"frame {i}")
-        sink.log_timings({"total": 5.0}, 20.0)
-    sink.close()
-    assert port_taken(RERUN_GRPC_PORT)  # still serving after the run
-    said = []
-    sink.hold(0.2, log=said.append)
-    assert "still serving" in said[0] and "Ctrl-C" in said[0]
+    return RerunSink("serve", tmp_path, {}, {1: "ape"}, np.eye(3), (64, 48), **kw)
+
+
+def test_serve_saves_the_recording_and_holds_until_told(tmp_path):
+    sink = _serve_or_skip(tmp_path)
+    try:
+        assert sink.url.startswith(f"http://localhost:{RERUN_WEB_PORT}/?url=rerun+http://127.0.0.1:{RERUN_GRPC_PORT}")
+        for i in range(3):
+            sink.log_frame(i, np.zeros((48, 64, 3), np.uint8), None, [], [_pose(1, 0.7)], status=f"frame {i}")
+            sink.log_timings({"total": 5.0}, 20.0)
+        sink.close()
+        assert port_taken(RERUN_GRPC_PORT) and port_taken(RERUN_WEB_PORT)  # still serving after the run
+        said = []
+        sink.hold(0.01, log=said.append)
+        assert "still serving" in said[0] and "Ctrl-C" in said[0]
+    finally:
+        sink.stop()
+    # both servers stopped with the hold: the gRPC server with the sink's recording, the web
+    # viewer with its process
+    assert not port_taken(RERUN_GRPC_PORT) and not port_taken(RERUN_WEB_PORT) and not sink.serving
     paths = set(rr.chunk.RrdReader(tmp_path / "recording.rrd").store().schema().entity_paths())
     assert {"/status", "/confidence/ape", "/timings/total_ms", "/timings/fps", "/timings/detect_ms"} <= paths
+
+
+def test_a_serving_sink_left_by_an_error_stops_its_servers(tmp_path):
+    with pytest.raises(RuntimeError, match="the run broke"):
+        with _serve_or_skip(tmp_path) as sink:
+            assert sink.serving and port_taken(RERUN_WEB_PORT)
+            raise RuntimeError("the run broke")
+    assert not sink.serving and not port_taken(RERUN_GRPC_PORT) and not port_taken(RERUN_WEB_PORT)
+
+
+def _rows(rrd):
+    """(entity path, is static, frame or None, {component: value}) for every row of a recording."""
+    rows = []
+    for chunk in rr.chunk.RrdReader(rrd).store().stream():
+        batch = chunk.to_record_batch()
+        cols = {n: batch.column(n).to_pylist() for n in batch.schema.names if ":" in n}
+        frames = batch.column("frame").to_pylist() if "frame" in batch.schema.names else [None] * batch.num_rows
+        for i, f in enumerate(frames):
+            rows.append((str(chunk.entity_path), chunk.is_static, f, {k: v[i] for k, v in cols.items() if v[i] is not None}))
+    return rows
+
+
+def _meshes_drawn(rrd, frames) -> dict:
+    """Which objects a viewer draws in the 3D view at each of ``frames``: the latest-at query of
+    each object's mesh that rerun's viewer makes, computed from the recording's rows. A static
+    mesh is drawn at every frame (a Clear cannot hide static data); a temporal one from the frame
+    it is logged at until a Clear of it (or, recursive, of a parent) at a later frame."""
+    rows = _rows(rrd)
+    meshes = {p for p, _, _, c in rows if "Mesh3D:vertex_positions" in c}
+    drawn = {f: set() for f in frames}
+    for mesh in meshes:
+        name = mesh.split("/")[3]  # /world/objects/<name>/mesh
+        events = []
+        for path, static, f, c in rows:
+            if path == mesh and "Mesh3D:vertex_positions" in c:
+                events.append((-1 if static else f, "mesh"))
+            elif "Clear:is_recursive" in c and (path == mesh or (c["Clear:is_recursive"] and mesh.startswith(path + "/"))):
+                assert not static
+                events.append((f, "clear"))
+        for k in frames:
+            before = sorted(e for e in events if e[0] <= k)
+            assert len({e[0] for e in before}) == len(before), f"a mesh and a Clear in one frame: {before}"
+            if before and (before[-1][1] == "mesh" or (-1, "mesh") in before):
+                drawn[k].add(name)
+    return drawn
+
+
+def test_rerun_draws_an_object_only_in_the_frames_it_is_tracked_in(tmp_path):
+    """Lost objects used to stay where last seen (their last transform) and objects not found yet
+    sat at the camera's origin (their meshes were static): now a frame draws what it tracks."""
+    from trimesh.creation import box
+    names = {1: "ape", 5: "can", 6: "cat"}
+    meshes = {o: box((10, 10, 10)) for o in names}
+    sink = RerunSink("save", tmp_path, meshes, names, np.eye(3), (64, 48), mesh_every=3)
+    tracked = [[1], [], [1, 5], [5], [], [5], [5], [5], [5]]  # cat: never found
+    for i, objs in enumerate(tracked):
+        sink.log_frame(i, np.zeros((48, 64, 3), np.uint8), None, [], [_pose(o, 0.9) for o in objs])
+    sink.close()
+    rrd = tmp_path / "recording.rrd"
+    drawn = _meshes_drawn(rrd, range(len(tracked)))
+    assert drawn == {i: {names[o] for o in objs} for i, objs in enumerate(tracked)}
+    # a long stretch in view: the mesh logged again every mesh_every frames (a late viewer of a
+    # served run gets it after the server dropped the oldest data)
+    can = sorted(f for p, _, f, c in _rows(rrd) if p == "/world/objects/can/mesh" and "Mesh3D:vertex_positions" in c)
+    assert can == [2, 5, 8]
+
+
+def test_two_sinks_in_one_process_write_their_own_recordings(tmp_path):
+    """Each sink logs to a recording stream of its own: with rerun's global recording, the
+    second sink took over the first one's logging."""
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    a = RerunSink("save", tmp_path / "a", {}, {1: "ape"}, np.eye(3), (64, 48))
+    b = RerunSink("save", tmp_path / "b", {}, {1: "ape"}, np.eye(3), (64, 48))
+    for i in range(3):  # interleaved
+        a.log_frame(i, np.zeros((48, 64, 3), np.uint8), None, [], [], status=f"a {i}")
+        b.log_frame(10 + i, np.zeros((48, 64, 3), np.uint8), None, [], [], status=f"b {i}")
+    a.close()
+    b.log_frame(13, np.zeros((48, 64, 3), np.uint8), None, [], [], status="b 3")  # a closed, b goes on
+    b.close()
+    texts = {k: sorted((f, c["TextDocument:text"]) for p, _, f, c in _rows(tmp_path / k / "recording.rrd")
+                       if p == "/status") for k in "ab"}
+    assert texts == {"a": [(i, [f"a {i}"]) for i in range(3)], "b": [(10 + i, [f"b {i}"]) for i in range(4)]}
 
 
 def _views(container):

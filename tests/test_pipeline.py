@@ -1,7 +1,6 @@
 """The tracker driven frame by frame (runtime.pipeline), and the run loop when the camera is
 lost midway. Uses the small fixtures in tests/fixtures and the shipped bundle only (no shared data)."""
 import json
-import time
 from pathlib import Path
 
 import numpy as np
@@ -92,51 +91,39 @@ def test_the_pipeline_with_a_detector_schedule_reuses_poses_between_detections(s
     assert p.step(f0).box_source == "detector"  # a new shot runs the detector again
 
 
-class _LateUnplug:
-    """A camera that delivers ``n`` frames, then stops (unplugged)."""
-
-    def __init__(self, n):
-        self.n, self.i = n, 0
-
-    def isOpened(self):
-        return True
-
-    def set(self, *a):
-        return True
-
-    def get(self, prop):
-        return 30.0
-
-    def read(self):
-        time.sleep(0.01)
-        if self.i >= self.n:
-            return False, None
-        self.i += 1
-        return True, np.full((480, 640, 3), 90, np.uint8)
-
-    def release(self):
-        pass
-
-
 def test_a_camera_lost_midway_ends_the_run_cleanly_with_its_files(tmp_path, monkeypatch, capsys):
+    """A camera that delivers 4 frames, then is unplugged. It delivers each frame only once the
+    run has logged the one before (the gated fake capture of test_track): the run handles all
+    4, drops none, and ends by itself, however slow or busy the machine."""
+    import threading
+
+    from tests.test_track import WAIT_S, FakeCapture
     from tracker.cli import main
-    from tracker.runtime import sources
+    from tracker.runtime import sinks, sources
+    gate = threading.Semaphore(0)
+    write = sinks.CsvSink.write
+
+    def write_then_next_frame(self, *a, **kw):
+        write(self, *a, **kw)
+        gate.release()
 
     def fake_open(src, max_frames=None, **kw):
-        return sources.CameraSource(0, capture=_LateUnplug(4), max_frames=max_frames, timeout_s=2.0, reconnect_s=0)
+        return sources.CameraSource(0, capture=FakeCapture(n=4, gate=gate, shape=(480, 640, 3)), max_frames=max_frames,
+                                    timeout_s=WAIT_S, reconnect_s=0)
     monkeypatch.setattr(sources, "open_source", fake_open)
+    monkeypatch.setattr(sinks.CsvSink, "write", write_then_next_frame)
     out = tmp_path / "run"
+    gate.release()  # the first frame
     rc = main(["track", "--source", "0", "--model", str(REPO / "models" / "lmo"), "--calib",
                str(REPO / "calib" / "lmo_kinect.yml"), "--out", str(out), "--rerun", "off", "--no-overlay"])
     err = capsys.readouterr().err
     assert rc == 0 and "camera stopped delivering frames" in err
     s = json.loads((out / "summary.json").read_text())
     assert s["camera_lost"] and not s["interrupted"] and s["error"] is None
-    n = s["frames"]  # the newest frame wins: a slow first frame lets the camera run ahead
-    assert 1 <= n and n + s["dropped_frames"] <= 4
+    assert s["frames"] == 4 and s["dropped_frames"] == 0
     assert "accuracy" not in s  # a camera has no ground truth
     timings = (out / "timings.csv").read_text().splitlines()
-    assert len(timings) == 1 + n and timings[-1].count(",") == timings[0].count(",")  # complete rows, closed
+    assert len(timings) == 1 + 4 and timings[-1].count(",") == timings[0].count(",")  # complete rows, closed
     assert (out / "poses.csv").read_text().startswith("scene_id,im_id,obj_id,score,R,t,time")
 
 

@@ -1,8 +1,11 @@
-"""The frame loop on short replays: files written, rerun recording readable, threaded capture."""
+"""The frame loop on short replays: files written, rerun recording readable, threaded capture,
+and what a run opens is closed on every way out."""
 import json
+import signal
 import socket
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -13,9 +16,11 @@ import rerun as rr
 from tracker.core.bop import read_results
 from tracker.core.errors import UserError
 from tracker.evaluation.track import track
-from tracker.runtime.loop import TrackConfig
+from tracker.runtime.loop import TrackConfig, run_track
 from tracker.runtime.sinks import RERUN_GRPC_PORT, STAGES, RerunSink, port_taken
 from tracker.runtime.sources import CameraSource, open_source
+
+REPO = Path(__file__).resolve().parents[1]
 
 
 def test_track_on_a_bop_replay_writes_valid_files(tiny_bundle, data_dir, tmp_path):
@@ -72,9 +77,10 @@ class FakeCapture:
     the test lets it (``gate``, a semaphore that may be shared by several plugs), so that how
     far the camera runs ahead of the pipeline is set by the test, not by the machine's load."""
 
-    def __init__(self, n=60, gate=None):
-        self.n, self.i, self.reads = n, 0, 0
+    def __init__(self, n=60, gate=None, shape=(48, 64, 3)):
+        self.n, self.i, self.reads, self.released = n, 0, 0, 0
         self.gate = gate if gate is not None else threading.Semaphore(0)
+        self.shape = shape
 
     def isOpened(self):
         return True
@@ -91,12 +97,12 @@ class FakeCapture:
             return False, None  # unplugged
         if not self.gate.acquire(timeout=WAIT_S):
             return False, None  # the test stopped asking for frames
-        f = np.full((48, 64, 3), self.i % 256, np.uint8)
+        f = np.full(self.shape, self.i % 256, np.uint8)
         self.i += 1
         return True, f
 
     def release(self):
-        pass
+        self.released += 1
 
 
 def test_threaded_capture_hands_over_the_newest_frame_and_counts_drops():
@@ -131,10 +137,13 @@ def test_camera_unplugged_and_plugged_back_in_reconnects():
 
     def opener():  # the first retry finds no device, the second finds it back, later ones none
         c = next(plugs, None)
+        opened.append(c is not None)
         return c if c is not None else Unplugged()
-    # reconnect_s: the first reconnection takes 2 retries of 0.01 s, well inside it; after the second
-    # unplug the camera is given up once it has passed (so this test lasts about reconnect_s)
-    cam = CameraSource(0, capture=opener(), opener=opener, reconnect_s=2.0, retry_s=0.01, timeout_s=WAIT_S)
+    opened = []
+    # retries: the first reconnection takes 2 of its 3 tries; after the second unplug the camera is
+    # given up after 3 failed tries (counted, not timed: reconnect_s is only a generous outer bound)
+    cam = CameraSource(0, capture=opener(), opener=opener, reconnect_s=WAIT_S, retry_s=0.0, retries=3,
+                       timeout_s=WAIT_S)
     frames, values = [], []
     gate.release()
     for f in cam:
@@ -143,6 +152,7 @@ def test_camera_unplugged_and_plugged_back_in_reconnects():
         gate.release()  # the next frame only once this one is handled: none dropped
     cam.close()
     assert cam.reconnects == 1 and cam.lost  # back once; gone for good after the second unplug
+    assert opened == [True, False, True, False, False, False]  # the first plug, then 2 tries, then 3
     assert frames == list(range(20)) and values == list(range(10)) * 2 and cam.dropped == 0
 
 
@@ -192,15 +202,13 @@ def test_a_run_that_fails_midway_keeps_its_summary(tiny_bundle, data_dir, tmp_pa
 
 
 def test_an_interrupted_run_writes_its_summary_without_scoring(tiny_bundle, data_dir, tmp_path, monkeypatch):
-    import os
-    import signal
     from tracker.runtime import sinks
     write = sinks.CsvSink.write
 
     def write_then_interrupt(self, *a, **kw):  # Ctrl-C while the second frame is being logged
         write(self, *a, **kw)
         if a[1] == 8:
-            os.kill(os.getpid(), signal.SIGINT)
+            signal.raise_signal(signal.SIGINT)  # handled before it returns
     monkeypatch.setattr(sinks.CsvSink, "write", write_then_interrupt)
     out = tmp_path / "run"
     s = track(TrackConfig(str(data_dir / "lmo" / "dev"), str(tiny_bundle), out, rerun="off", max_frames=4),
@@ -210,18 +218,16 @@ def test_an_interrupted_run_writes_its_summary_without_scoring(tiny_bundle, data
 
 
 def test_finishing_a_run_defers_the_first_interrupt():
-    import os
-    import signal
     from tracker.runtime.signals import Deferred as _Deferred
     said = []
     before = signal.getsignal(signal.SIGINT)  # SIG_IGN in a job started in the background
+    # signal.raise_signal: the signal is raised in this thread and its Python handler has run when
+    # the call returns (no waiting for a delivery)
     with _Deferred(said.append, "scoring") as d:
-        os.kill(os.getpid(), signal.SIGINT)  # the first: noted, not raised
-        time.sleep(0.05)
+        signal.raise_signal(signal.SIGINT)  # the first: noted, not raised
         assert d.hit and said == ["scoring; interrupt again to skip it"]
         with pytest.raises(KeyboardInterrupt):
-            os.kill(os.getpid(), signal.SIGINT)
-            time.sleep(0.05)
+            signal.raise_signal(signal.SIGINT)
     assert signal.getsignal(signal.SIGINT) is before  # put back
 
 
@@ -244,6 +250,71 @@ def test_rerun_serve_on_a_taken_port_is_one_clear_error(tmp_path):
         except OSError:
             pytest.skip(f"port {RERUN_GRPC_PORT} is in use on this machine")
         s.listen()
-        # (rerun's web server, once started by an earlier test in this process, stays up: 9090 too)
+        # (and 9090 where something else on this machine listens there)
         with pytest.raises(UserError, match=f"port {RERUN_GRPC_PORT}( and 9090)? already in use"):
             RerunSink("serve", tmp_path, {}, {}, np.eye(3), (640, 480))
+
+
+SHIPPED, CALIB = REPO / "models" / "lmo", REPO / "calib" / "lmo_kinect.yml"
+
+
+def _fake_cameras(monkeypatch, gate=None):
+    """Camera sources open as gated fake captures (the test delivers their frames); returns the
+    list of the sources opened. close_timeout_s=0: close() does not wait for the read in flight
+    (the test lets it return, and then sees the thread end)."""
+    from tracker.runtime import sources
+    opened = []
+
+    def fake_open(src, max_frames=None, **kw):
+        cam = CameraSource(0, capture=FakeCapture(n=10 ** 6, gate=gate, shape=(480, 640, 3)), max_frames=max_frames,
+                           timeout_s=WAIT_S, reconnect_s=0, close_timeout_s=0)
+        opened.append(cam)
+        return cam
+    monkeypatch.setattr(sources, "open_source", fake_open)
+    return opened
+
+
+@pytest.mark.parametrize("bad", ["no --calib", "--video-out .gif", "--frames-out a file", "--rerun spawn, no display"])
+def test_a_camera_run_that_fails_its_checks_never_opens_the_camera(bad, tmp_path, monkeypatch):
+    """Every check the arguments allow comes before the source opens: a camera's capture thread
+    is never started for a run that cannot run (it was left running before)."""
+    opened = _fake_cameras(monkeypatch)
+    (tmp_path / "a-file").write_text("")
+    cfg = TrackConfig("0", str(SHIPPED), tmp_path / "run", calib=str(CALIB), rerun="off", overlay=False)
+    cfg = {"no --calib": replace(cfg, calib=None), "--video-out .gif": replace(cfg, video_out=str(tmp_path / "r.gif")),
+           "--frames-out a file": replace(cfg, frames_out=str(tmp_path / "a-file")),
+           "--rerun spawn, no display": replace(cfg, rerun="spawn")}[bad]
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    monkeypatch.setattr("sys.platform", "linux")
+    with pytest.raises(UserError):
+        run_track(cfg, log=lambda m: None)
+    # (before, a camera opened ahead of a failing check was left capturing)
+    left_running = [c for c in opened if c._thread.is_alive() and not c._stop]
+    assert not left_running and opened == [] and not (tmp_path / "run").exists()
+
+
+def test_a_camera_run_that_fails_after_opening_closes_the_camera(tmp_path, monkeypatch):
+    """A failure once the camera is open (here the pipeline, on the first frame): the run's summary
+    says so, the camera is closed and its capture thread ends with the read in flight."""
+    from tracker.runtime.pipeline import Pipeline
+    gate = threading.Semaphore(0)
+    opened = _fake_cameras(monkeypatch, gate)
+
+    def broken(self, frame):
+        raise RuntimeError("the pipeline broke")
+    monkeypatch.setattr(Pipeline, "step", broken)
+    out = tmp_path / "run"
+    gate.release()  # the camera delivers one frame
+    with pytest.raises(RuntimeError, match="the pipeline broke"):
+        run_track(TrackConfig("0", str(SHIPPED), out, calib=str(CALIB), rerun="save", overlay=False),
+                  log=lambda m: None)
+    (cam,) = opened
+    assert cam._stop  # closed ...
+    assert cam.cap.released == 0  # ... but not released under the read in flight: the thread does it as it ends
+    gate.release()  # the read in flight returns a frame; the thread, told to stop, ends
+    cam._thread.join(WAIT_S)
+    assert not cam.capturing and cam.cap.released == 1
+    s = json.loads((out / "summary.json").read_text())
+    assert s["frames"] == 0 and s["error"] == "RuntimeError: the pipeline broke" and not s["interrupted"]
+    assert len((out / "timings.csv").read_text().splitlines()) == 1  # the header, complete and closed

@@ -45,6 +45,8 @@ def track(cfg: TrackConfig, log=print) -> RunSummary:
         except UserError as e:
             s.error = f"scoring: {e}"
             s.save(out)
+            if s.viewer is not None:  # nobody will hold a viewer on a failed run
+                s.viewer.stop()
             raise
         s.interrupted = scoring.hit  # a Ctrl-C came; the frames were all done (and scored, once)
         s.save(out)

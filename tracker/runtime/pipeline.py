@@ -177,6 +177,14 @@ class Pipeline:
         return self._pts[obj_id]
 
     def close(self):
+        """Release the overlay's renderer (its GL context); the pipeline can still step (a new
+        renderer is made when needed)."""
         if self.renderer is not None:
             self.renderer.close()
             self.renderer = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()

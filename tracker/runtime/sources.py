@@ -25,6 +25,7 @@ class Frame:
 
 
 class Source:
+    """A source is a context manager: leaving the ``with`` closes it (a camera's thread ends)."""
     kind = "source"
     fps: float | None = None
     dropped = 0
@@ -34,6 +35,12 @@ class Source:
 
     def close(self):
         pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
 
 
 class BopSceneSource(Source):
@@ -122,20 +129,28 @@ class CameraSource(Source):
     """V4L2 camera read by a thread that keeps only the newest frame: a slow pipeline drops
     frames (counted in ``dropped``) instead of falling behind. When the camera stops
     delivering (unplugged), the thread tries to open it again for ``reconnect_s`` seconds
-    (counted in ``reconnects``); after that the iteration ends cleanly with ``lost`` set."""
+    (and at most ``retries`` times, None: no limit but the time), every ``retry_s`` seconds
+    (counted in ``reconnects``); after that the iteration ends cleanly with ``lost`` set.
+
+    The capture belongs to the thread: :meth:`close` asks it to stop and waits for it up to
+    ``close_timeout_s`` (a live camera's read in flight returns within a frame); the thread
+    releases the camera as it ends, never under a read in flight."""
 
     kind = "camera"
 
     def __init__(self, device, width=None, height=None, fps=None, max_frames=None, capture=None, timeout_s=2.0,
-                 reconnect_s: float = 5.0, opener=None, retry_s: float = 0.5):
+                 reconnect_s: float = 5.0, opener=None, retry_s: float = 0.5, retries: int | None = None,
+                 close_timeout_s: float = 1.0):
         self.device = device
         self.size_fps = (width, height, fps)
         if opener is None and capture is None:
             def opener():
                 return cv2.VideoCapture(device, cv2.CAP_V4L2)
-        self.opener, self.reconnect_s, self.retry_s = opener, reconnect_s, retry_s
+        self.opener, self.reconnect_s, self.retry_s, self.retries = opener, reconnect_s, retry_s, retries
+        self.close_timeout_s = close_timeout_s
         self.cap = capture if capture is not None else opener()
         if not self.cap.isOpened():
+            self.cap.release()
             raise UserError(f"no camera at '{device}' (check the index or /dev/videoN and permissions)")
         self._configure(self.cap)
         self.fps = self.cap.get(cv2.CAP_PROP_FPS) or fps
@@ -148,6 +163,7 @@ class CameraSource(Source):
         self.reconnects = 0
         self.reconnecting = False
         self.lost = False
+        self.closed = False
         self._stop = False
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
@@ -168,9 +184,11 @@ class CameraSource(Source):
             self.reconnecting = True
         self.cap.release()
         deadline = time.monotonic() + self.reconnect_s
+        tries = 0
         try:
-            while not self._stop and time.monotonic() < deadline:
+            while not self._stop and time.monotonic() < deadline and (self.retries is None or tries < self.retries):
                 time.sleep(self.retry_s)
+                tries += 1
                 cap = self.opener()
                 if cap.isOpened():
                     self._configure(cap)
@@ -185,20 +203,23 @@ class CameraSource(Source):
                 self._cond.notify_all()
 
     def _run(self):
-        while not self._stop:
-            ok, frame = self.cap.read()
-            t = time.monotonic()
-            if not ok:
-                if self._reopen():
-                    continue
+        try:
+            while not self._stop:
+                ok, frame = self.cap.read()
+                t = time.monotonic()
+                if not ok:
+                    if self._reopen():
+                        continue
+                    with self._cond:
+                        self.lost = True
+                        self._cond.notify_all()
+                    return
                 with self._cond:
-                    self.lost = True
+                    self._latest = (self._grabbed, t, frame)
+                    self._grabbed += 1
                     self._cond.notify_all()
-                return
-            with self._cond:
-                self._latest = (self._grabbed, t, frame)
-                self._grabbed += 1
-                self._cond.notify_all()
+        finally:
+            self.cap.release()
 
     def __iter__(self):
         n = 0
@@ -219,9 +240,16 @@ class CameraSource(Source):
             n += 1
 
     def close(self):
+        """Stop the capture thread and wait for it (up to ``close_timeout_s``); it releases the
+        camera as it ends."""
         self._stop = True
-        self._thread.join(timeout=1.0)
-        self.cap.release()
+        self.closed = True
+        self._thread.join(timeout=self.close_timeout_s)
+
+    @property
+    def capturing(self) -> bool:
+        """Whether the capture thread still runs."""
+        return self._thread.is_alive()
 
 
 def _sleep_until(t):
@@ -236,16 +264,28 @@ def is_camera(src) -> bool:
     return s.isdigit() or s.startswith("/dev/video")
 
 
+def source_kind(src) -> str:
+    """What ``src`` names, without opening it: camera, bop (a BOP scene folder), images (a
+    folder) or video (a file); a UserError for anything else."""
+    s = str(src)
+    if is_camera(s):
+        return CameraSource.kind
+    p = Path(s)
+    if p.is_dir():
+        return BopSceneSource.kind if is_scene_dir(p) else ImageFolderSource.kind
+    if p.is_file():
+        return VideoFileSource.kind
+    raise UserError(f"source '{src}' is not a camera, video file, image folder or BOP scene")
+
+
 def open_source(src: str, max_frames=None, realtime=False, width=None, height=None, fps=None) -> Source:
     """Camera index or /dev/videoN, video file, image folder, or BOP scene folder."""
     s = str(src)
-    if is_camera(s):
+    kind = source_kind(s)
+    if kind == CameraSource.kind:
         return CameraSource(int(s) if s.isdigit() else s, width, height, fps, max_frames)
-    p = Path(s)
-    if p.is_dir():
-        if is_scene_dir(p):
-            return BopSceneSource(p, max_frames, realtime)
-        return ImageFolderSource(p, max_frames, realtime)
-    if p.is_file():
-        return VideoFileSource(p, max_frames, realtime)
-    raise UserError(f"source '{src}' is not a camera, video file, image folder or BOP scene")
+    if kind == BopSceneSource.kind:
+        return BopSceneSource(Path(s), max_frames, realtime)
+    if kind == ImageFolderSource.kind:
+        return ImageFolderSource(Path(s), max_frames, realtime)
+    return VideoFileSource(Path(s), max_frames, realtime)

@@ -24,15 +24,22 @@ def check_video_path(path) -> Path:
     return p
 
 
+def check_frames_dir(path) -> Path:
+    """Refuse, before the run starts, a --frames-out that is a file."""
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise UserError(f"--frames-out {p} is a file; give a folder")
+    return p
+
+
 class FrameWriter:
-    """Writes RGB frames to ``video`` (at ``fps``) and/or as ``frames_dir/NNNNNN.png``."""
+    """Writes RGB frames to ``video`` (at ``fps``) and/or as ``frames_dir/NNNNNN.png``; a
+    context manager (leaving it closes the video)."""
 
     def __init__(self, video=None, frames_dir=None, fps: float = 30.0):
         self.video = check_video_path(video) if video else None
-        self.frames_dir = Path(frames_dir) if frames_dir else None
+        self.frames_dir = check_frames_dir(frames_dir) if frames_dir else None
         if self.frames_dir is not None:
-            if self.frames_dir.exists() and not self.frames_dir.is_dir():
-                raise UserError(f"--frames-out {self.frames_dir} is a file; give a folder")
             self.frames_dir.mkdir(parents=True, exist_ok=True)
         self.fps = float(fps) if fps and fps > 0 else 30.0
         self._vw = None
@@ -65,3 +72,9 @@ class FrameWriter:
         if self._vw is not None:
             self._vw.release()
             self._vw = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
