@@ -130,6 +130,48 @@ def test_a_staged_change_lands_whole_or_not_at_all(bundle):
     assert sorted(p.name for p in bundle.parent.iterdir()) == ["lmo"]
 
 
+def test_the_bundle_writer_hashes_verifies_and_swaps_or_leaves_the_bundle_as_it_was(bundle, monkeypatch):
+    from tracker.core import bundle as bmod
+    from tracker.core.bundle import bundle_writer
+    before = {p.name: sha256(p) for p in bundle.iterdir() if p.is_file()}
+    # a failure midway (a file written, the manifest not yet): the old bundle, untouched
+    with pytest.raises(RuntimeError, match="midway"):
+        with bundle_writer(bundle) as w:
+            (w.folder / "codebook.npz").write_bytes(b"half written")
+            w.manifest.name = "changed"
+            raise RuntimeError("midway")
+    # the manifest written, but a file fails its hash on the check before the swap: the same
+    real = bmod.write_manifest
+
+    def then_altered(folder, manifest):
+        out = real(folder, manifest)
+        (folder / "pose_head.json").write_text("{}")
+        return out
+    monkeypatch.setattr(bmod, "write_manifest", then_altered)
+    with pytest.raises(UserError, match="pose_head.json' does not match its SHA-256"):
+        with bundle_writer(bundle) as w:
+            w.manifest.name = "changed"
+    monkeypatch.undo()
+    assert {p.name: sha256(p) for p in bundle.iterdir() if p.is_file()} == before
+    assert sorted(p.name for p in bundle.parent.iterdir()) == ["lmo"]  # no staging folder left
+    open_bundle(bundle)
+
+    # a whole change: a file and the manifest, hashed and swapped in; the writer holds the verified manifest
+    with bundle_writer(bundle) as w:
+        (w.folder / "notes.txt").write_text("hello")
+        w.manifest.name = "changed"
+    assert w.manifest.name == "changed" and "notes.txt" in w.manifest.files
+    assert open_bundle(bundle).manifest.to_dict() == w.manifest.to_dict()
+    # into another folder: the source stays as it was; a new bundle needs a manifest
+    with bundle_writer(bundle, bundle.parent / "copy") as w:
+        w.manifest.name = "copy"
+    assert open_bundle(bundle.parent / "copy").manifest.name == "copy" and open_bundle(bundle).manifest.name == "changed"
+    with pytest.raises(ValueError, match="no manifest"):
+        with bundle_writer(None, bundle.parent / "new") as w:
+            (w.folder / "a.txt").write_text("a")
+    assert sorted(p.name for p in bundle.parent.iterdir()) == ["copy", "lmo"]
+
+
 
 def test_exact_and_detector_boxes_get_the_manifests_trees_weights(bundle, lmo_dev):
     from tracker.runtime.estimator import Detection

@@ -56,3 +56,71 @@ def test_a_folder_without_meshes_is_one_clear_error(tmp_path):
     (tmp_path / "bad.ply").write_text("ply\nnot really")
     with pytest.raises(UserError, match="bad.ply"):
         prepare_models(tmp_path, tmp_path / "out", log=lambda *a: None)
+
+
+def _two_meshes(tmp_path):
+    src = tmp_path / "src"
+    src.mkdir()
+    shutil.copy(FIX / "obj_000001.ply", src / "obj_000001.ply")
+    shutil.copy(FIX / "obj_000001.ply", src / "obj_000007_duck.ply")
+    return src
+
+
+def test_names_come_from_a_names_file_beside_the_meshes_or_a_given_one_that_wins(tmp_path):
+    from tracker.training.prepare import read_names
+    src = _two_meshes(tmp_path)
+    quiet = {"symmetries": False, "log": lambda *a: None}
+    (src / "names.json").write_text(json.dumps({"1": "ape"}))  # beside the meshes: read when no file is given
+    rep = prepare_models(src, tmp_path / "a", **quiet)
+    assert {k: v["name"] for k, v in rep.items()} == {1: "ape", 7: "duck"}  # 7 unnamed: its file's name
+    assert object_names(tmp_path / "a") == {1: "ape", 7: "duck"}
+    given = tmp_path / "mine.json"
+    given.write_text(json.dumps({"7": "goose"}))  # given: it wins over the file beside the meshes
+    rep = prepare_models(src, tmp_path / "b", names=given, **quiet)
+    assert {k: v["name"] for k, v in rep.items()} == {1: "obj_1", 7: "goose"}
+    rep = prepare_models(src, tmp_path / "c", names={1: "ape", "7": "goose"}, **quiet)  # or a mapping
+    assert object_names(tmp_path / "c") == {1: "ape", 7: "goose"}
+    assert read_names(given) == {7: "goose"}
+
+
+@pytest.mark.parametrize("text, match", [
+    ('{"1": "ape",', r"bad\.json: not valid JSON"),
+    ('["ape"]', r"bad\.json: expected a JSON object of object ids to names"),
+    ('{"one": "ape"}', r"bad\.json: 'one' is not an object id"),
+    ('{"0": "ape"}', r"bad\.json: '0' is not an object id"),
+    ('{"1": 5}', r"bad\.json: the name of object 1 must be a non-empty string, not 5"),
+    ('{"1": ""}', r"bad\.json: the name of object 1 must be a non-empty string"),
+    ('{"1": "ape", "7": "ape"}', r"bad\.json: two objects named 'ape'"),
+    ('{"9": "duck"}', r"bad\.json: names for object\(s\) 9, which no mesh of .* has \(its ids: 1, 7\)"),
+    ('{"1": "duck"}', r"bad\.json: object 1 named 'duck', the name object 7 has from its file"),
+])
+def test_a_bad_names_file_is_one_line_error_before_any_mesh_is_written(tmp_path, text, match):
+    src = _two_meshes(tmp_path)
+    bad = tmp_path / "bad.json"
+    bad.write_text(text)
+    with pytest.raises(UserError, match=match) as e:
+        prepare_models(src, tmp_path / "out", names=bad, log=lambda *a: None)
+    assert "\n" not in str(e.value) and not (tmp_path / "out").exists()
+    shutil.copy(bad, src / "names.json")  # the same checks for the file beside the meshes
+    with pytest.raises(UserError, match=match.replace(r"bad\.json", r"names\.json")):
+        prepare_models(src, tmp_path / "out", log=lambda *a: None)
+    with pytest.raises(UserError, match="no such names file"):
+        prepare_models(src, tmp_path / "out", names=tmp_path / "none.json", log=lambda *a: None)
+
+
+def test_a_bundles_objects_are_renamed_through_the_staged_writer(tmp_path):
+    from tests.conftest import REPO
+    from tracker.core.bundle import open_bundle, sha256
+    from tracker.training.prepare import set_object_names
+    b = tmp_path / "lmo"
+    shutil.copytree(REPO / "models" / "lmo", b)
+    files = {p.name: sha256(p) for p in b.rglob("*") if p.is_file() and p.name != "manifest.json"}
+    with pytest.raises(UserError, match="names for object.*2, which .* does not have"):
+        set_object_names(b, {2: "bench"}, log=lambda *a: None)
+    m = set_object_names(b, {12: "punch", 1: "monkey"}, log=lambda *a: None, command="test")
+    after = open_bundle(b).manifest  # every hash verified
+    assert after.object(12).name == "punch" and after.object(1).name == "monkey" and after.object(9).name == "duck"
+    assert after.extra["object_names"]["renamed"]["12"] == {"from": "holepuncher", "to": "punch"}
+    assert m.to_dict() == after.to_dict()
+    assert {p.name: sha256(p) for p in b.rglob("*") if p.is_file() and p.name != "manifest.json"} == files
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["lmo"]

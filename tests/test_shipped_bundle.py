@@ -34,3 +34,19 @@ def test_the_shipped_bundle_scores_its_documented_figures_on_the_dev_frames(data
         got.update({k: m["detection"][k] for k in ("ap", "ap50", "recall50")})
     off = {k: (round(v, 4), want[k]) for k, v in got.items() if abs(v - want[k]) > TOL}
     assert not off, f"models/lmo on the dev frames ({boxes} boxes) moved: {off} (got, documented)"
+
+
+def test_the_shipped_bundle_names_its_objects_for_the_overlay_rerun_and_status_line():
+    """models/lmo's objects carry the LM-O names (set through the staged writer, every hash
+    verified); the overlay, the rerun sink and the status line all take names from them."""
+    from tracker.core.bundle import open_bundle
+    from tracker.runtime.estimator import PoseEstimator
+    from tracker.runtime.pipeline import Pipeline
+    from tracker.runtime.status import TrackStatus
+    b = open_bundle(REPO / "models" / "lmo")  # verifies every file's SHA-256
+    names = {o.id: o.name for o in b.objects}
+    assert names == {1: "ape", 5: "can", 6: "cat", 8: "driller", 9: "duck", 10: "eggbox", 11: "glue",
+                     12: "holepuncher"}
+    assert Pipeline(PoseEstimator(b)).names[12] == "holepuncher"  # the overlay's labels
+    line = TrackStatus(names, b.manifest.obj_ids, 0.5).update(0, [])  # what run_track shows and gives rerun
+    assert "holepuncher" in line and "obj_12" not in line

@@ -48,6 +48,9 @@ def add_build(sub, REPO) -> None:
                         "before stop 51)")
     s.add_argument("--max-images", type=positive_int, metavar="N",
                    help="the most images per rendered split (default: what this machine's memory can train on)")
+    s.add_argument("--names", metavar="FILE",
+                   help="JSON of object names by id, e.g. {\"9\": \"duck\"} (default: names.json beside the meshes, "
+                        "else the file names); kept in the bundle and shown on the overlay, in rerun and the status")
     s.add_argument("--from-manifest", metavar="BUNDLE", help="redo the recipe a built bundle records (its options)")
     s.set_defaults(func=cmd_build)
 
@@ -56,7 +59,7 @@ def cmd_build(args) -> int:
     sigterm_as_ctrl_c()
     from tracker.training.build import Recipe, build, recipe_from_manifest
     if args.from_manifest:
-        recipe = recipe_from_manifest(args.from_manifest)
+        recipe = recipe_from_manifest(args.from_manifest, log=lambda m: print(m, file=sys.stderr))
         print(f"build: the recipe of {args.from_manifest}: {recipe}", file=sys.stderr)
     else:
         if not args.models:
@@ -64,7 +67,8 @@ def cmd_build(args) -> int:
         recipe = Recipe(models=str(args.models), minutes=args.minutes, objects=args.objects, prior=args.prior,
                         units=args.units, seed=args.seed, encoder=args.encoder, size=args.size,
                         detector_backbone=args.detector_backbone, workers=args.workers, device=args.device,
-                        mesh_faces=args.mesh_faces, head_sets=args.head_sets, max_images=args.max_images)
+                        mesh_faces=args.mesh_faces, head_sets=args.head_sets, max_images=args.max_images,
+                        names=args.names)
     s = build(recipe, args.out, log=lambda m: print(m, file=sys.stderr))
     det = s["stages"].get("check", {}).get("detector", {})
     print(f"built {args.out} in {s['minutes']} min this run, {s['minutes_all_runs']} min over all its runs "

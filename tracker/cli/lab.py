@@ -112,7 +112,7 @@ def cmd_models_info(args) -> int:
 
 def cmd_prepare_models(args) -> int:
     from tracker.training.prepare import prepare_models
-    rep = prepare_models(args.models, args.out, units=args.units, log=print)
+    rep = prepare_models(args.models, args.out, units=args.units, names=args.names, log=print)
     print(f"wrote {args.out}: {len(rep)} object(s) in millimetres, models_info.json, names.json")
     return 0
 
@@ -235,6 +235,9 @@ def add_commands(sub, REPO) -> None:
     s.add_argument("--out", required=True, help="models folder to write (obj_NNNNNN.ply, models_info.json, names.json)")
     s.add_argument("--units", choices=["auto", "mm", "cm", "m"], default="auto",
                    help="the meshes' unit; auto refuses a mesh under 5 units across (it looks like metres)")
+    s.add_argument("--names", metavar="FILE",
+                   help="JSON of object names by id, e.g. {\"9\": \"duck\"} (default: names.json beside the meshes, "
+                        "else the file names)")
     s.set_defaults(func=cmd_prepare_models)
 
     s = sub.add_parser("compare", help="two 'eval --per-instance' files of one scene: each figure's difference "

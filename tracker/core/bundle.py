@@ -11,17 +11,11 @@ import hashlib
 import json
 import shutil
 import tempfile
-import zipfile
-import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
 from tracker.core.errors import UserError
 from tracker.core.manifest import FORMAT, MANIFEST, Manifest
-
-# what reading a malformed pose head or codebook can raise (numpy, zipfile, zlib, JSON)
-_UNREADABLE = (ValueError, KeyError, TypeError, OSError, AttributeError, IndexError, EOFError, zipfile.BadZipFile,
-               zlib.error)
 
 
 def sha256(path) -> str:
@@ -81,26 +75,6 @@ class Bundle:
             raise UserError(f"{self.root}: artefact '{rel}' is not hashed in the manifest; refusing it")
         return self.root / rel
 
-    def load_head(self):
-        """The pose head (:mod:`tracker.runtime.heads`): JSON + arrays, no pickles."""
-        from tracker.runtime.heads import load_head
-        spec, arrays = self.path("pose_head"), self.path("pose_head_arrays")
-        try:
-            return load_head(spec, arrays)
-        except _UNREADABLE as e:
-            raise UserError(f"{spec}: unreadable pose head ({e.__class__.__name__}: {str(e)[:100]}); the bundle "
-                            f"was built broken: rebuild it") from None
-
-    def load_codebook(self):
-        """The AAE codebook (``eval --mode aae``)."""
-        from tracker.runtime.heads import load_codebook
-        path = self.path("codebook")
-        try:
-            return load_codebook(path)
-        except _UNREADABLE as e:
-            raise UserError(f"{path}: unreadable codebook ({e.__class__.__name__}: {str(e)[:100]}); the bundle "
-                            f"was built broken: rebuild it") from None
-
     def overlay_mesh_path(self, obj) -> Path:
         """The light mesh of an object when the bundle has one, else its full mesh."""
         return self.root / (obj.overlay_mesh or obj.mesh)
@@ -117,7 +91,8 @@ class Bundle:
 
 @contextlib.contextmanager
 def staged_bundle(src_root, out):
-    """Where a job writes a changed bundle: yields a copy of the bundle at ``src_root`` (None: an
+    """The folder swap under :func:`bundle_writer` (jobs use that: it also hashes and verifies the
+    manifest). Where a job writes a changed bundle: yields a copy of the bundle at ``src_root`` (None: an
     empty folder, for a new bundle) in a staging folder beside ``out``; when the block ends without
     error that folder takes ``out``'s place (``out`` may be ``src_root``: in place). An interrupted
     job (Ctrl-C, a crash, a refusal) leaves ``out`` as it was and no staging folder behind."""
@@ -138,17 +113,62 @@ def staged_bundle(src_root, out):
     shutil.rmtree(old, ignore_errors=True)
 
 
+class BundleWriter:
+    """What :func:`bundle_writer` yields: ``folder``, the staged copy of the bundle to write files
+    into, and ``manifest``, the manifest to write there when the block ends (a copy of the source
+    bundle's to edit or replace; None for a new bundle until the caller sets it). After the block,
+    ``manifest`` is the bundle's verified manifest."""
+
+    def __init__(self, folder: Path, manifest: Manifest | None):
+        self.folder = folder
+        self.manifest = manifest
+
+    def apply(self, step) -> None:
+        """Run ``step(folder)``, a job that opens the staged copy as a bundle and changes it with
+        its own staged write (:func:`update_manifest`, e.g.
+        :func:`tracker.training.decimate.add_overlay_meshes`): ``manifest`` is hashed into the copy
+        first and read back, verified, after."""
+        write_manifest(self.folder, self.manifest)
+        step(self.folder)
+        self.manifest = read_verified_manifest(self.folder)
+
+
+@contextlib.contextmanager
+def bundle_writer(src, out=None):
+    """The one way to write a bundle: yields a :class:`BundleWriter` on a staged copy of ``src`` (a
+    :class:`Bundle`; a bundle folder, verified first; None: an empty folder for a new bundle at
+    ``out``); the caller writes files into ``writer.folder`` and edits (or sets)
+    ``writer.manifest``. When the block ends without error, the manifest is written with every
+    file's SHA-256 (:func:`write_manifest`), the staged bundle is verified
+    (:func:`read_verified_manifest`) and it takes ``out``'s place (default: ``src``'s folder, in
+    place); ``writer.manifest`` is then the verified manifest. Anything that stops it before (an
+    error, Ctrl-C, a file that fails its hash) leaves ``out`` as it was and no staging folder
+    behind (:func:`staged_bundle`)."""
+    if src is not None and not isinstance(src, Bundle):
+        src = open_bundle(src)
+    if out is None:
+        if src is None:
+            raise ValueError("bundle_writer: a new bundle (src None) needs out")
+        out = src.root
+    with staged_bundle(None if src is None else src.root, out) as stage:
+        writer = BundleWriter(stage, None if src is None else src.manifest.copy())
+        yield writer
+        if writer.manifest is None:
+            raise ValueError("bundle_writer: no manifest was set for the new bundle")
+        write_manifest(stage, writer.manifest)
+        verified = read_verified_manifest(stage)
+    writer.manifest = verified
+
+
 def update_manifest(bundle_dir, change) -> Manifest:
-    """Verify a bundle, then change it through :func:`staged_bundle`: ``change(manifest, folder)``
-    edits a copy of the manifest and writes its files into ``folder`` (a staged copy of the
-    bundle), which is re-hashed and takes the bundle's place only when all of it went well (an
-    interrupted change leaves the bundle as it was). Returns the new manifest."""
-    b = open_bundle(bundle_dir)
-    with staged_bundle(b.root, b.root) as stage:
-        manifest = b.manifest.copy()
-        change(manifest, stage)
-        write_manifest(stage, manifest)
-    return read_verified_manifest(b.root)
+    """Verify a bundle, then change it in place through :func:`bundle_writer`:
+    ``change(manifest, folder)`` edits a copy of the manifest and writes its files into ``folder``
+    (a staged copy of the bundle), which is re-hashed, verified and takes the bundle's place only
+    when all of it went well (an interrupted change leaves the bundle as it was). Returns the new
+    manifest."""
+    with bundle_writer(bundle_dir) as w:
+        change(w.manifest, w.folder)
+    return w.manifest
 
 
 def open_bundle(bundle_dir) -> Bundle:

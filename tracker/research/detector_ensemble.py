@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tracker.core.bundle import read_verified_manifest, sha256, staged_bundle, write_manifest
+from tracker.core.bundle import bundle_writer, sha256
 from tracker.runtime.detector import DetectorSpec, bundle_with_detector, float_detector, letterbox, normalise, run_graph
 from tracker.core.errors import UserError
 from tracker.core.manifest import Manifest
@@ -311,13 +311,11 @@ def _store_detector(src, out: Path, graph: Path, detector: dict) -> tuple[Manife
     """Write ``out``: bundle ``src`` with ``graph`` as its detector and ``detector`` as the
     manifest's entry, staged and re-hashed (in place when ``out`` is ``src``'s folder); returns
     the verified manifest and the graph's size in MB."""
-    m = src.manifest.copy()
-    m.name = out.name
-    m.detector = detector
-    with staged_bundle(src.root, out) as stage:
-        (stage / src.manifest.artefacts["detector"]).write_bytes(graph.read_bytes())
-        write_manifest(stage, m)
-    return read_verified_manifest(out), (out / src.manifest.artefacts["detector"]).stat().st_size / 1e6
+    with bundle_writer(src, out) as w:
+        w.manifest.name = out.name
+        w.manifest.detector = detector
+        (w.folder / src.manifest.artefacts["detector"]).write_bytes(graph.read_bytes())
+    return w.manifest, (out / src.manifest.artefacts["detector"]).stat().st_size / 1e6
 
 
 def requantise_detector(model_dir, int8_data, out_dir=None, calibration_images: int = CALIBRATION_IMAGES,

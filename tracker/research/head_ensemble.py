@@ -8,10 +8,10 @@ import time
 from pathlib import Path
 
 from tracker.core.bop import load_models_info, symmetry_rotations
-from tracker.core.bundle import open_bundle, read_verified_manifest, staged_bundle, write_manifest
+from tracker.core.bundle import bundle_writer, open_bundle
 from tracker.core.errors import UserError
 from tracker.core.manifest import Manifest
-from tracker.runtime.heads import HeadEnsemble, save_head
+from tracker.runtime.heads import HeadEnsemble, load_bundle_head, save_head
 
 
 def _origin(path, manifest) -> dict:
@@ -29,14 +29,14 @@ def join_heads(model_dir, others, out_dir=None, log=print, command: str | None =
     encoder (by SHA-256) and objects; the codebook, detector and meshes stay ``model_dir``'s."""
     src = open_bundle(model_dir)
     enc_sha = src.manifest.file_sha256("encoder")
-    heads, names = [src.load_head()], [_origin(model_dir, src.manifest)]
+    heads, names = [load_bundle_head(src)], [_origin(model_dir, src.manifest)]
     for o in others:
         b = open_bundle(o)
         if b.manifest.file_sha256("encoder") != enc_sha:
             raise UserError(f"{o}: its encoder is not {model_dir}'s (SHA-256 differs); only heads fitted on the "
                             "same encoder can be averaged (make them with 'app.py lab refit-heads --model "
                             f"{model_dir} --out DIR')")
-        heads.append(b.load_head())
+        heads.append(load_bundle_head(b))
         names.append(_origin(o, b.manifest))
     info = load_models_info(src.path("models_info"))
     obj_ids = heads[0].obj_ids
@@ -46,16 +46,14 @@ def join_heads(model_dir, others, out_dir=None, log=print, command: str | None =
     syms = {o: symmetry_rotations(info[o]) for o in obj_ids}
     ensemble = HeadEnsemble(heads, syms)
     out = Path(out_dir) if out_dir else src.root
-    m = src.manifest.copy()
-    m.name = out.name
-    m.heads = {**src.manifest.heads,
-                  "ensemble": {"members": len(ensemble.members), "from": names,
-                               "note": "validation_synthetic is the first member's",
-                               "command": command or "app.py " + " ".join(sys.argv[1:]),
-                               "created": time.strftime("%Y-%m-%d %H:%M:%S")}}
-    with staged_bundle(src.root, out) as stage:
-        save_head(ensemble, stage / src.manifest.artefacts["pose_head"], stage / src.manifest.artefacts["pose_head_arrays"])
-        write_manifest(stage, m)
-    manifest = read_verified_manifest(out)
+    with bundle_writer(src, out) as w:
+        m = w.manifest
+        m.name = out.name
+        m.heads = {**src.manifest.heads,
+                   "ensemble": {"members": len(ensemble.members), "from": names,
+                                "note": "validation_synthetic is the first member's",
+                                "command": command or "app.py " + " ".join(sys.argv[1:]),
+                                "created": time.strftime("%Y-%m-%d %H:%M:%S")}}
+        save_head(ensemble, w.folder / m.artefacts["pose_head"], w.folder / m.artefacts["pose_head_arrays"])
     log(f"bundle {out}: a pose head averaging {len(ensemble.members)} head sets")
-    return manifest
+    return w.manifest

@@ -15,7 +15,7 @@ import time
 from pathlib import Path
 
 from tracker.core.bop import is_scene_dir
-from tracker.core.bundle import open_bundle, read_verified_manifest, staged_bundle, write_manifest
+from tracker.core.bundle import bundle_writer, open_bundle
 from tracker.core.errors import UserError
 from tracker.core.manifest import Manifest
 
@@ -34,6 +34,7 @@ def tune_trees_weight(model_dir, data, weights=WEIGHTS, out_dir=None, max_frames
     set to the best of ``weights`` on ``data`` (a ``synth`` split or scene: renders, never the
     evaluation frames), ``max_frames`` per scene."""
     from tracker.runtime.estimator import trees_weights
+    from tracker.runtime.heads import load_bundle_head
     from tracker.evaluation.evaluate import evaluate
     weights = sorted({float(w) for w in weights})
     if not weights or any(not 0 <= w <= 1 for w in weights):
@@ -42,7 +43,7 @@ def tune_trees_weight(model_dir, data, weights=WEIGHTS, out_dir=None, max_frames
     b = open_bundle(model_dir)
     if not b.manifest.has_detector:
         raise UserError(f"{model_dir}: this bundle has no detector; the weight is for the detector's boxes")
-    head = b.load_head()
+    head = load_bundle_head(b)
     weights_now = trees_weights(b.manifest)
     if not any(getattr(h, "distance_by_rotation", None) is not None for h in getattr(head, "members", [head])):
         raise UserError(f"{model_dir}: its pose head has no distance-from-rotation trees; nothing to tune")
@@ -62,14 +63,13 @@ def tune_trees_weight(model_dir, data, weights=WEIGHTS, out_dir=None, max_frames
     best = max(weights, key=lambda w: (table[w]["add_recall"], table[w]["ar_mssd"],
                                        w == weights_now["detector"]))  # ties: keep the bundle's
     out = Path(out_dir) if out_dir else b.root
-    m = b.manifest.copy()
-    m.name = out.name
-    m.heads = {**m.heads, "trees_weight": {
-        "exact": weights_now["exact"], "detector": best, "chosen_on": str(data),
-        "by_weight": {str(w): v for w, v in table.items()}, "max_frames": max_frames,
-        "command": command or "app.py " + " ".join(sys.argv[1:]), "created": time.strftime("%Y-%m-%d %H:%M:%S")}}
-    with staged_bundle(b.root, out) as stage:
-        write_manifest(stage, m)
+    with bundle_writer(b, out) as writer:
+        m = writer.manifest
+        m.name = out.name
+        m.heads = {**m.heads, "trees_weight": {
+            "exact": weights_now["exact"], "detector": best, "chosen_on": str(data),
+            "by_weight": {str(w): v for w, v in table.items()}, "max_frames": max_frames,
+            "command": command or "app.py " + " ".join(sys.argv[1:]), "created": time.strftime("%Y-%m-%d %H:%M:%S")}}
     log(f"bundle {out}: the trees' share of the distance for detector boxes {best:.2f} "
         f"(exact boxes {m.heads['trees_weight']['exact']:.2f})")
-    return read_verified_manifest(out)
+    return writer.manifest

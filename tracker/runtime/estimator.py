@@ -16,6 +16,7 @@ from tracker.core.bundle import Bundle, open_bundle
 from tracker.core.errors import UserError
 from tracker.core.geometry import crop_and_resize, square_crop
 from tracker.runtime.confidence import box_agreement, code_similarity, confidence
+from tracker.runtime.heads import load_bundle_codebook, load_bundle_head
 
 
 @dataclass
@@ -80,7 +81,7 @@ class PoseEstimator:
         self.method = m.method
         self.obj_ids = m.obj_ids
         self.session = make_session(self.bundle.path("encoder"), threads)
-        self.head = self.bundle.load_head()
+        self.head = load_bundle_head(self.bundle)
         self.trees_weight = trees_weights(m)
         self.conditional = len(self.session.get_inputs()) > 1
         self._pools = None
@@ -134,7 +135,7 @@ class PoseEstimator:
         mu = self.encode(self.crops(image_rgb, boxes), ids)
         t1 = time.perf_counter()
         if mode == "aae" and self.head.codebook is None:
-            self.head.codebook = self.bundle.load_codebook()
+            self.head.codebook = load_bundle_codebook(self.bundle)
         w = np.array([self.trees_weight["exact" if d.exact else "detector"] for d in dets])
         with self._pools.limit(limits=1) if self._pools is not None else contextlib.nullcontext():
             R, t = self.head.predict(mu, ids, boxes, K, mode=mode, trees_weight=w)
@@ -155,7 +156,7 @@ class PoseEstimator:
         the bundle has no codebook)."""
         if self._codes is None:
             has = "codebook" in self.bundle.manifest.artefacts
-            self._codes = {o: c[0] for o, c in self.bundle.load_codebook().codes_.items()} if has else {}
+            self._codes = {o: c[0] for o, c in load_bundle_codebook(self.bundle).codes_.items()} if has else {}
         out = np.ones(len(mu))
         for k, o in enumerate(ids):
             if o in self._codes:

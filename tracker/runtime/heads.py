@@ -19,6 +19,9 @@ Features are camera-independent (see :func:`tracker.core.geometry.box_features`)
 """
 from __future__ import annotations
 
+import zipfile
+import zlib
+
 import numpy as np
 from scipy.special import expit
 
@@ -592,3 +595,29 @@ def load_head(json_path, npz_path) -> PoseHead:
 def load_codebook(npz_path) -> Codebook:
     with np.load(npz_path, allow_pickle=False) as arrays:
         return Codebook.from_arrays(arrays)
+
+
+# what reading a malformed pose head or codebook can raise (numpy, zipfile, zlib, JSON)
+_UNREADABLE = (ValueError, KeyError, TypeError, OSError, AttributeError, IndexError, EOFError, zipfile.BadZipFile,
+               zlib.error)
+
+
+def load_bundle_head(bundle):
+    """A bundle's pose head (:class:`tracker.core.bundle.Bundle`, verified when opened): JSON +
+    arrays, no pickles; a one-line error for a malformed one."""
+    spec, arrays = bundle.path("pose_head"), bundle.path("pose_head_arrays")
+    try:
+        return load_head(spec, arrays)
+    except _UNREADABLE as e:
+        raise UserError(f"{spec}: unreadable pose head ({e.__class__.__name__}: {str(e)[:100]}); the bundle "
+                        f"was built broken: rebuild it") from None
+
+
+def load_bundle_codebook(bundle) -> Codebook:
+    """A bundle's AAE codebook (``eval --mode aae``); a one-line error for a malformed one."""
+    path = bundle.path("codebook")
+    try:
+        return load_codebook(path)
+    except _UNREADABLE as e:
+        raise UserError(f"{path}: unreadable codebook ({e.__class__.__name__}: {str(e)[:100]}); the bundle "
+                        f"was built broken: rebuild it") from None

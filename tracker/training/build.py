@@ -41,7 +41,7 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from tracker.training.decimate import SYNTH_FACES
+from tracker.core.defaults import SYNTH_FACES
 from tracker.core.errors import UserError
 from tracker.core.files import write_whole
 
@@ -84,7 +84,16 @@ class Recipe:
     head_sets: int = 3
     # the most images per split; None: what this machine's memory holds (memory_cap)
     max_images: int | None = None
+    # object names that beat the file names ({"9": "duck"}; a names file's path is read into
+    # this); None: a names.json beside the meshes, else the file names (tracker.training.prepare)
+    names: dict[str, str] | None = None
     extra: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        if self.names is not None:  # kept as {"id": name} in id order: as the manifest's JSON holds it
+            from tracker.training.prepare import read_names
+            where = str(self.names) if isinstance(self.names, (str, os.PathLike)) else "--names"
+            self.names = {str(k): v for k, v in read_names(self.names, where).items()} or None
 
     @classmethod
     def from_dict(cls, d: dict) -> "Recipe":
@@ -247,12 +256,14 @@ def build(recipe: Recipe, out_dir, log=print) -> dict:
 
     # 1. meshes -> BOP models folder
     models_dir = root / "models"
-    k_models = _key("models", mesh_fingerprint(recipe.models), recipe.units, recipe.objects)
+    # (names only when given: the key of builds made before they could be)
+    k_models = _key("models", mesh_fingerprint(recipe.models), recipe.units, recipe.objects,
+                    *([recipe.names] if recipe.names else []))
 
     def do_models():
         from tracker.training.prepare import prepare_models
         shutil.rmtree(models_dir, ignore_errors=True)
-        rep = prepare_models(recipe.models, models_dir, units=recipe.units, log=log)
+        rep = prepare_models(recipe.models, models_dir, units=recipe.units, log=log, names=recipe.names)
         if recipe.objects:
             unknown = sorted(set(recipe.objects) - set(rep))
             if unknown:
@@ -369,9 +380,9 @@ def build(recipe: Recipe, out_dir, log=print) -> dict:
     def do_report():
         _record_recipe(out, root, recipe, p, state.d)
         return {"report": str(out / "report" / "report.md")}
-    # (mesh_faces 0 and max_images None: the keys of builds made before they were recorded)
+    # (mesh_faces 0, max_images and names None: the keys of builds made before they were recorded)
     recorded = {k: v for k, v in asdict(recipe).items()
-                if (k != "mesh_faces" or v) and (k != "max_images" or v is not None)}
+                if (k != "mesh_faces" or v) and (k not in ("max_images", "names") or v is not None)}
     stage(7, "report", _key("report", k_check, recorded), do_report)
     summary["minutes"] = round((time.perf_counter() - t_start) / 60, 1)
     summary["minutes_all_runs"] = round(sum(state.d[s].get("seconds", 0.0) for s in STAGES) / 60, 1)
@@ -392,11 +403,22 @@ def _record_recipe(out: Path, root: Path, recipe: Recipe, planned: dict, stages:
     update_manifest(out, change)
 
 
-def recipe_from_manifest(bundle_dir) -> Recipe:
-    """``build --from-manifest``: the recipe a built bundle records."""
+def recipe_from_manifest(bundle_dir, log=None) -> Recipe:
+    """``build --from-manifest``: the recipe a built bundle records. Names set on the bundle
+    after its build (``set_object_names``) join the recipe, so the rebuild keeps them; a part
+    that came from another run (a detector with ``provenance``) is said, since the recipe
+    rebuilds its own."""
     from tracker.core.bundle import open_bundle
     b = open_bundle(bundle_dir)
     rec = b.manifest.extra.get("build", {}).get("recipe")
     if not isinstance(rec, dict):
         raise UserError(f"{bundle_dir}: its manifest records no build recipe (it was not made by 'app.py build')")
+    rec = dict(rec)
+    if not rec.get("names") and b.manifest.extra.get("object_names"):
+        rec["names"] = {str(o.id): o.name for o in b.manifest.objects}
+    det = b.manifest.detector or {}
+    if det.get("provenance") and log is not None:
+        p = det["provenance"]
+        log(f"build: note: {bundle_dir}'s detector came from another run ({p.get('note', p)}); this recipe trains "
+            f"its own detector, so the rebuilt bundle's differs")
     return Recipe.from_dict(rec)

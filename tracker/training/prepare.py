@@ -3,13 +3,17 @@
 Any mesh trimesh reads (PLY, OBJ, STL, GLB/glTF, OFF) becomes ``obj_NNNNNN.ply`` in
 millimetres with vertex colours (a texture is sampled at the vertices; a mesh without colour
 gets a grey one, with a warning), plus ``models_info.json`` (diameter, bounding box, discrete
-symmetries) and ``names.json`` (the object names: the file names). Units are checked: BOP
+symmetries) and ``names.json`` (the object names: a names file's, :func:`read_names`, else the
+file names). Units are checked: BOP
 meshes are in millimetres, and a mesh whose diameter is under :data:`METRES_BELOW` units looks
 like metres, so it is refused unless ``units`` says which it is (``m`` converts to mm)."""
 from __future__ import annotations
 
 import json
+import os
 import re
+import sys
+import time
 import warnings
 from pathlib import Path
 
@@ -21,6 +25,7 @@ MESH_SUFFIXES = (".ply", ".obj", ".stl", ".glb", ".gltf", ".off")
 METRES_BELOW = 5.0  # a diameter under 5 units: metres (a 5 m object), not a 5 mm one
 UNITS = {"auto": None, "mm": 1.0, "cm": 10.0, "m": 1000.0}
 BOP_NAME = re.compile(r"^obj_(\d{6})(?:[_-](.+))?$")  # obj_000009 or obj_000009_duck: id 9 (named duck)
+NAMES = "names.json"  # {"9": "duck", ...}: beside the meshes, or given (--names)
 
 
 def mesh_files(src) -> list[Path]:
@@ -41,10 +46,79 @@ def _load_any(path: Path):
     return mesh
 
 
-def prepare_models(src, out, units: str = "auto", symmetries: bool = True, log=print) -> dict[int, dict]:
+def read_names(names, where=None, unique: bool = True) -> dict[int, str]:
+    """Object names, checked: ``names`` is a JSON file ``{"9": "duck", ...}`` (a path) or such a
+    mapping (ids as whole numbers or their strings). Ids must be whole numbers >= 1 and names
+    non-empty strings (``unique``: no two alike); anything else is one :class:`UserError` naming
+    ``where`` (default: the file, or --names)."""
+    if isinstance(names, (str, os.PathLike)):
+        path = Path(names)
+        where = where or str(path)
+        if not path.is_file():
+            raise UserError(f"{where}: no such names file (expected JSON like {{\"9\": \"duck\"}})")
+        try:
+            names = json.loads(path.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError) as e:
+            raise UserError(f"{where}: not valid JSON ({str(e).splitlines()[0][:80]}); expected "
+                            f"{{\"9\": \"duck\", ...}}") from None
+    where = where or "--names"
+    if not isinstance(names, dict):
+        raise UserError(f"{where}: expected a JSON object of object ids to names, like {{\"9\": \"duck\"}}")
+    out = {}
+    for k, v in names.items():
+        oid = k if isinstance(k, int) and not isinstance(k, bool) else (
+            int(k) if isinstance(k, str) and k.strip().isascii() and k.strip().isdigit() else None)
+        if oid is None or oid < 1:
+            raise UserError(f"{where}: {k!r} is not an object id (a whole number >= 1, like \"9\")")
+        if not isinstance(v, str) or not v.strip():
+            raise UserError(f"{where}: the name of object {oid} must be a non-empty string, not {v!r}")
+        if oid in out:
+            raise UserError(f"{where}: object {oid} is named twice")
+        out[oid] = v.strip()
+    twice = sorted({n for n in out.values() if list(out.values()).count(n) > 1})
+    if twice and unique:
+        raise UserError(f"{where}: two objects named {twice[0]!r}; give each its own name")
+    return dict(sorted(out.items()))
+
+
+def _given_names(src, names, ids) -> dict[int, str]:
+    """The names that beat the file names: ``names`` (a file or mapping) when given, else a
+    ``names.json`` beside the meshes ({} without one); checked against the meshes' ids
+    (``ids``: {file: id}) and the names the others keep from their files."""
+    if names is None:
+        beside = Path(src) / NAMES
+        if not beside.is_file():
+            return {}
+        names, where = beside, str(beside)
+    else:
+        where = str(names) if isinstance(names, (str, os.PathLike)) else "--names"
+    given = read_names(names, where)
+    unknown = sorted(set(given) - set(ids.values()))
+    if unknown:
+        raise UserError(f"{where}: names for object(s) {', '.join(map(str, unknown))}, which no mesh of {src} has "
+                        f"(its ids: {', '.join(map(str, sorted(ids.values())))})")
+    taken = {_file_name(p): oid for p, oid in ids.items() if oid not in given}
+    clash = [(oid, n) for oid, n in given.items() if n in taken]
+    if clash:
+        raise UserError(f"{where}: object {clash[0][0]} named {clash[0][1]!r}, the name object {taken[clash[0][1]]} "
+                        f"has from its file; give each its own name")
+    return given
+
+
+def _file_name(p: Path) -> str:
+    """An object's name from its file: ``NAME`` of ``obj_NNNNNN_NAME``, ``obj_N``, or the file name."""
+    m = BOP_NAME.match(p.stem)
+    return (m.group(2) or f"obj_{int(m.group(1))}") if m else p.stem
+
+
+def prepare_models(src, out, units: str = "auto", symmetries: bool = True, log=print,
+                   names=None) -> dict[int, dict]:
     """Write ``out``/obj_NNNNNN.ply, models_info.json and names.json from the meshes in ``src``.
     Files named ``obj_NNNNNN.*`` or ``obj_NNNNNN_NAME.*`` keep their id; the others are numbered 1, 2, ... in name
-    order (after the kept ids). Returns {obj_id: {"name", "source", "diameter_mm", "scale"}}."""
+    order (after the kept ids). An object's name is ``names``' (a JSON file ``{"9": "duck"}`` or
+    a mapping, :func:`read_names`; None: ``src``/names.json when there is one), else its file's
+    (``NAME`` above, the file name, or ``obj_N``). Returns {obj_id: {"name", "source",
+    "diameter_mm", "scale"}}."""
     from tracker.core.bop import save_models_info
     from tracker.core.meshes import compute_models_info, diameter, load_mesh
     if units not in UNITS:
@@ -65,6 +139,7 @@ def prepare_models(src, out, units: str = "auto", symmetries: bool = True, log=p
                 nxt += 1
             ids[p] = nxt
             taken.add(nxt)
+    given = _given_names(src, names, ids)  # a bad names file fails before any mesh is read
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     report = {}
@@ -93,8 +168,7 @@ def prepare_models(src, out, units: str = "auto", symmetries: bool = True, log=p
         dst = out / f"obj_{oid:06d}.ply"
         mesh.export(dst, encoding="binary")
         load_mesh(dst, oid)  # what the other jobs will read
-        m = BOP_NAME.match(p.stem)
-        name = (m.group(2) or f"obj_{int(m.group(1))}") if m else p.stem
+        name = given.get(oid) or _file_name(p)
         report[oid] = {"name": name, "source": str(p), "diameter_mm": round(d * scale, 3), "scale": scale}
         log(f"{p.name} -> {dst.name}: '{name}', diameter {d * scale:.1f} mm" + (f" (x {scale:g})" if scale != 1 else ""))
     from tracker.core.meshes import load_models
@@ -105,10 +179,39 @@ def prepare_models(src, out, units: str = "auto", symmetries: bool = True, log=p
 
 def object_names(models_dir) -> dict[int, str]:
     """The names a prepared models folder gives its objects ({} without names.json)."""
-    p = Path(models_dir) / "names.json"
-    if not p.is_file():
-        return {}
-    try:
-        return {int(k): str(v) for k, v in json.loads(p.read_text()).items()}
-    except (ValueError, AttributeError):
-        raise UserError(f"{p}: unreadable (expected {{\"1\": \"name\", ...}})") from None
+    p = Path(models_dir) / NAMES
+    return read_names(p, unique=False) if p.is_file() else {}  # file names may repeat, as before
+
+
+def set_object_names(bundle_dir, names, log=print, command: str | None = None):
+    """Rename a bundle's objects in place (``names``: a names file or mapping, :func:`read_names`;
+    objects it does not name keep theirs): only the manifest changes, through the staged writer
+    (:func:`tracker.core.bundle.update_manifest`), which records the change under
+    ``object_names``. Returns the new manifest."""
+    from tracker.core.bundle import update_manifest
+    where = str(names) if isinstance(names, (str, os.PathLike)) else "--names"
+    given = read_names(names, where)
+    renamed = {}
+
+    def change(manifest, folder):
+        unknown = sorted(set(given) - set(manifest.obj_ids))
+        if unknown:
+            raise UserError(f"{where}: names for object(s) {', '.join(map(str, unknown))}, which {bundle_dir} "
+                            f"does not have (its ids: {', '.join(map(str, manifest.obj_ids))})")
+        for o in manifest.objects:
+            if o.id in given and o.name != given[o.id]:
+                renamed[o.id] = (o.name, given[o.id])
+                o.name = given[o.id]
+        final = [o.name for o in manifest.objects]
+        twice = sorted({n for n in final if final.count(n) > 1})
+        if twice:
+            raise UserError(f"{where}: {bundle_dir} would have two objects named {twice[0]!r}")
+        if renamed:
+            manifest.extra["object_names"] = {
+                "renamed": {str(k): {"from": a, "to": b} for k, (a, b) in renamed.items()},
+                "command": command or "app.py " + " ".join(sys.argv[1:]),
+                "created": time.strftime("%Y-%m-%d %H:%M:%S")}
+    manifest = update_manifest(bundle_dir, change)
+    log(f"bundle {bundle_dir}: " + (", ".join(f"{k} {a} -> {b}" for k, (a, b) in renamed.items())
+                                    if renamed else "names unchanged"))
+    return manifest
