@@ -1,5 +1,10 @@
+import atexit
 import os
+import shutil
 import sys
+import tempfile
+import time
+import types
 from pathlib import Path
 
 import pytest
@@ -14,10 +19,40 @@ settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+# every test's caches (parsed meshes, hulls, decimated meshes, models_info: tracker.core.paths.cache_dir)
+# go to a folder of this run, never the user's ~/.cache/autopose, whatever the environment says;
+# the subprocesses that tests start inherit it. Set before anything is imported or collected
+TEST_CACHE = tempfile.mkdtemp(prefix="autopose-test-cache-")
+os.environ["AUTOPOSE_CACHE"] = TEST_CACHE
+atexit.register(shutil.rmtree, TEST_CACHE, ignore_errors=True)
 
 from tracker.core.paths import shared_data  # noqa: E402
 
 DATA = shared_data()
+
+
+class FakeClock:
+    """A ``time.perf_counter`` that moves only when told (``advance``) or, with ``tick``, by that
+    much at every reading: code that budgets or records seconds then runs the same number of
+    steps on any machine, however busy. ``module_time`` is a stand-in for a module's ``time``."""
+
+    def __init__(self, tick: float = 0.0):
+        self.now, self.tick, self.readings = 0.0, tick, 0
+
+    def __call__(self) -> float:
+        t = self.now
+        self.now += self.tick
+        self.readings += 1
+        return t
+
+    def advance(self, seconds: float) -> None:
+        self.now += seconds
+
+    def module_time(self):
+        """The ``time`` module with this clock for ``perf_counter`` and ``monotonic``:
+        ``monkeypatch.setattr(module, "time", clock.module_time())``."""
+        names = {k: getattr(time, k) for k in dir(time) if not k.startswith("_")}
+        return types.SimpleNamespace(**{**names, "perf_counter": self, "monotonic": self})
 
 
 @pytest.fixture(scope="session")
@@ -41,7 +76,8 @@ def lmo_models(data_dir):
 
 @pytest.fixture(scope="session")
 def tiny_bundle(tmp_path_factory, data_dir):
-    """A bundle for all 8 LM-O objects, trained for seconds: exercises code paths only."""
+    """A bundle for all 8 LM-O objects, trained for a few steps: exercises code paths only. Step
+    and epoch budgets, not minutes: the same bundle on any machine, however busy."""
     pytest.importorskip("torch")
     from tracker.training.synth.engine import SynthConfig, generate
     from tracker.training.train import train_bundle
@@ -49,6 +85,6 @@ def tiny_bundle(tmp_path_factory, data_dir):
     cfg = SynthConfig(models_dir=str(data_dir / "lmo" / "models"), backgrounds_dir=str(data_dir / "backgrounds"),
                       seed=4, objects_per_image=(8, 8))
     generate(cfg, root / "split", 3, workers=1, progress=False)
-    train_bundle(root / "split", root / "lmo", method="cvam", size=32, latent=16, minutes=0.03, reg_minutes=0.01,
+    train_bundle(root / "split", root / "lmo", method="cvam", size=32, latent=16, max_steps=20, reg_epochs=20,
                  models_info_path=REPO / "models" / "lmo_models_info.json", log=lambda *a: None)
     return root / "lmo"

@@ -4,7 +4,6 @@ import dataclasses
 import json
 import os
 import shutil
-import time
 from pathlib import Path
 
 import pytest
@@ -13,6 +12,7 @@ pytest.importorskip("torch")
 from tracker.training import build as bb  # noqa: E402
 from tracker.core.bundle import open_bundle  # noqa: E402
 from tracker.core.errors import UserError  # noqa: E402
+from tests.conftest import FakeClock  # noqa: E402
 
 FIX = Path(__file__).parent / "fixtures" / "models"
 
@@ -100,12 +100,16 @@ def test_build_makes_a_bundle_resumes_and_records_its_recipe(small, tmp_path, mo
     src = _meshes(tmp_path)
     out = tmp_path / "models" / "mine"
     recipe = bb.Recipe(models=str(src), minutes=0.05, workers=1, size=32, latent=16)
-    # an interruption while the detector trains: what was done before is kept
+    # the stages' times from a clock of the test's own: it moves only where the test says, so the
+    # times recorded are known exactly (no sleeping, whatever the machine's load)
+    clock = FakeClock()
+    monkeypatch.setattr(bb, "time", clock.module_time())
+    # an interruption while the detector trains, 30 s into it: what was done before is kept
     import tracker.training.detector_train as dt
     real = dt.train_detector
 
     def interrupted(*a, **k):
-        time.sleep(0.5)
+        clock.advance(30.0)
         raise KeyboardInterrupt
     monkeypatch.setattr(dt, "train_detector", interrupted)
     logs = []
@@ -113,20 +117,25 @@ def test_build_makes_a_bundle_resumes_and_records_its_recipe(small, tmp_path, mo
         bb.build(recipe, out, log=logs.append)
     state = json.loads((tmp_path / "models" / "mine.work" / "build" / "state.json").read_text())
     assert [k for k in state if state[k]["done"]] == ["models", "render", "render-det", "encoder"]
-    assert not state["detector"]["done"] and state["detector"]["seconds"] >= 0.5  # its time so far is kept
-    monkeypatch.setattr(dt, "train_detector", real)
+    assert not state["detector"]["done"] and state["detector"]["seconds"] == 30.0  # its time so far is kept
+
+    def resumed(*a, **k):  # 12 s more in the second run
+        clock.advance(12.0)
+        return real(*a, **k)
+    monkeypatch.setattr(dt, "train_detector", resumed)
     logs = []
     s = bb.build(recipe, out, log=logs.append)
     assert sum("done before (cached)" in m for m in logs) == 4  # the same command went on where it stopped
     # the detector's time adds up both runs, and so does the whole build's
-    assert s["stages"]["detector"]["seconds"] > 0.5
+    assert s["stages"]["detector"]["seconds"] == 42.0
+    monkeypatch.setattr(dt, "train_detector", real)
     after = json.loads((tmp_path / "models" / "mine.work" / "build" / "state.json").read_text())
     assert s["minutes_all_runs"] == round(sum(v["seconds"] for v in after.values()) / 60, 1)
     b = open_bundle(out)  # verified: every file hashed, the report too
     assert b.manifest.has_detector and sorted(b.manifest.obj_ids) == [1, 2]
     assert b.manifest.heads["ensemble"]["seeds"] == [0, 1, 2]  # three head sets averaged
-    from tracker.runtime.heads import HeadEnsemble
-    assert isinstance(b.load_head(), HeadEnsemble) and len(b.load_head().members) == 3
+    from tracker.runtime.heads import HeadEnsemble, load_bundle_head
+    assert isinstance(load_bundle_head(b), HeadEnsemble) and len(load_bundle_head(b).members) == 3
     assert "report/report.md" in b.manifest.files and "report/samples.png" in b.manifest.files
     text = (out / "report" / "report.md").read_text()
     assert "On held-out renders" in text and "| detector |" in text
@@ -183,14 +192,43 @@ def test_build_without_the_train_extra_stops_before_rendering(small, tmp_path, m
 
 
 def test_sigterm_ends_a_long_job_as_ctrl_c_does():
-    import os
     import signal
     from tracker.runtime.signals import sigterm_as_ctrl_c
     old = signal.getsignal(signal.SIGTERM)
+    after = []
     try:
         sigterm_as_ctrl_c()
         with pytest.raises(KeyboardInterrupt):
-            os.kill(os.getpid(), signal.SIGTERM)
-            time.sleep(5)  # the handler raises before this ends
+            # the signal to this thread, its Python handler run before raise_signal returns: no
+            # waiting for it to arrive
+            signal.raise_signal(signal.SIGTERM)
+            after.append("went on")  # the job's next line never runs
+        assert after == []
     finally:
         signal.signal(signal.SIGTERM, old)
+
+
+def test_build_takes_object_names_from_a_names_file_and_its_recipe_keeps_them(small, tmp_path, monkeypatch):
+    src = _meshes(tmp_path)
+    names = tmp_path / "names.json"
+    names.write_text(json.dumps({"2": "mug"}))
+    r = bb.Recipe(models=str(src), minutes=0.05, names=str(names))  # a names file is read into the recipe
+    assert r.names == {"2": "mug"}
+    assert bb.Recipe.from_dict(json.loads(json.dumps(dataclasses.asdict(r)))) == r  # build --from-manifest
+    assert bb.Recipe(models=str(src), names={10: "b", 9: "a"}).names == {"9": "a", "10": "b"}
+    from tracker.training.synth import engine
+
+    def stop(*args, **kw):  # the first stage is all this needs
+        raise KeyboardInterrupt
+    monkeypatch.setattr(engine, "generate", stop)
+    with pytest.raises(KeyboardInterrupt):
+        bb.build(r, tmp_path / "out", log=lambda m: None)
+    state = json.loads((tmp_path / "out.work" / "build" / "state.json").read_text())
+    assert state["models"]["objects"] == {"1": "obj_1", "2": "mug"}  # given names beat the file names
+    assert json.loads((tmp_path / "out.work" / "build" / "models" / "names.json").read_text()) == {"1": "obj_1",
+                                                                                                   "2": "mug"}
+    names.write_text('{"2": "mug"')
+    with pytest.raises(UserError, match=r"names.json: not valid JSON"):
+        bb.Recipe(models=str(src), names=str(names))
+    with pytest.raises(UserError, match=r"--names: names for object\(s\) 5"):
+        bb.build(bb.Recipe(models=str(src), minutes=0.05, names={5: "x"}), tmp_path / "out2", log=lambda m: None)

@@ -18,7 +18,7 @@ def run(*args, timeout=300):
 def assert_one_line_error(p, code=1):
     assert p.returncode == code, p.stderr
     assert "Traceback" not in p.stderr
-    lines = [l for l in p.stderr.splitlines() if l.startswith("error:")]
+    lines = [ln for ln in p.stderr.splitlines() if ln.startswith("error:")]
     assert len(lines) == 1, p.stderr
 
 

@@ -21,7 +21,7 @@ def _train(out, logs=None):
     x, c = _data()
     torch.manual_seed(7)
     model = AutoEncoder("cvam", 16, 8, 2, widths=(8, 16))
-    hist = fit.train_autoencoder(model, x[:40], x[:40], c[:40], x[40:], x[40:], c[40:], out, minutes=5, batch=8,
+    hist = fit.train_autoencoder(model, x[:40], x[:40], c[:40], x[40:], x[40:], c[40:], out, max_steps=10, batch=8,
                                  patience=1000, precision="fp32", max_epochs=2,
                                  log=(logs.append if logs is not None else lambda *a: None))
     return model, hist
@@ -29,7 +29,7 @@ def _train(out, logs=None):
 
 @pytest.mark.parametrize("how", ["ctrl-c", "killed"])
 def test_an_epoch_stopped_part_way_resumes_at_its_batch(tmp_path, monkeypatch, how):
-    whole, hist_whole = _train(tmp_path / "whole")  # 5 batches an epoch, 2 epochs
+    whole, hist_whole = _train(tmp_path / "whole")  # 5 batches an epoch, 2 epochs: 10 steps, whatever the time
 
     real, calls = fit.augment, []
 

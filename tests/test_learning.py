@@ -31,7 +31,7 @@ def tiny_split(tmp_path_factory, data_dir):
 
 
 def _train(split, out, method, encoder="plain"):
-    return train_bundle(split, out, method=method, size=32, latent=16, minutes=0.05, reg_minutes=0.02,
+    return train_bundle(split, out, method=method, size=32, latent=16, max_steps=6, reg_epochs=10,
                         models_info_path=None, log=lambda *a: None, encoder=encoder)
 
 
@@ -145,10 +145,10 @@ def test_kl_warmup_raises_the_kl_weight_step_by_step(tiny_split, tmp_path, monke
     seen = []
     real = fit.kl_weight
     monkeypatch.setattr(fit, "kl_weight", lambda step, warmup=0: seen.append((step, warmup)) or real(step, warmup))
-    train_bundle(tiny_split, tmp_path / "w", method="cvam", size=32, latent=16, minutes=0.02, reg_minutes=0.01,
+    train_bundle(tiny_split, tmp_path / "w", method="cvam", size=32, latent=16, max_steps=4, reg_epochs=5,
                  models_info_path=None, log=lambda *a: None, kl_warmup=7)
     steps = [st for st, _ in seen]
-    assert seen and all(w == 7 for _, w in seen) and steps == list(range(len(steps)))  # one per step, from 0
+    assert all(w == 7 for _, w in seen) and steps == [0, 1, 2, 3]  # one per step, from 0
     assert np.float64(5e-324) > 0  # the subnormal flush of training does not outlive it
 
 
@@ -195,8 +195,9 @@ def test_training_resumes_from_its_checkpoint(tiny_split, tmp_path):
     ck = tmp_path / "m.work" / "ae_checkpoint.pt"
     assert ck.is_file()
     logs = []
-    train_bundle(tiny_split, out, method="cvml", size=32, latent=16, minutes=0.1, reg_minutes=0.02, log=logs.append)
-    assert any(str(l).startswith("resumed from") for l in logs)
+    m = train_bundle(tiny_split, out, method="cvml", size=32, latent=16, max_steps=9, reg_epochs=10, log=logs.append)
+    assert any(str(ln).startswith("resumed from") for ln in logs)
+    assert m.training["ae_epochs"] == 9 and m.training["ae_max_steps"] == 9  # one batch an epoch: 6 + 3 more
     with pytest.raises(UserError, match="checkpoint of another network"):
         _train(tiny_split, out, "dalsr")  # same --out, another network: a clear error, no traceback
 
@@ -208,9 +209,9 @@ def test_training_can_start_from_another_runs_weights(tiny_split, tmp_path):
     _train(tiny_split, tmp_path / "a", "cvml")
     src = tmp_path / "a.work" / "ae_checkpoint.pt"
     logs = []
-    train_bundle(tiny_split, tmp_path / "b", method="cvml", size=32, latent=16, minutes=0.01, reg_minutes=0.02,
+    train_bundle(tiny_split, tmp_path / "b", method="cvml", size=32, latent=16, max_steps=2, reg_epochs=5,
                  init_from=src, log=logs.append)
-    assert any(str(l).startswith("started from the weights of") for l in logs)
+    assert any(str(ln).startswith("started from the weights of") for ln in logs)
     m = json.loads((tmp_path / "b" / "manifest.json").read_text())
     assert m["training"]["init_from"] == str(src)
     from tracker.training.nets.autoencoder import AutoEncoder
@@ -233,7 +234,7 @@ def test_training_can_start_from_another_runs_weights(tiny_split, tmp_path):
 
 
 def _train_from(split, out, method, init_from):
-    return train_bundle(split, out, method=method, size=32, latent=16, minutes=0.01, reg_minutes=0.02,
+    return train_bundle(split, out, method=method, size=32, latent=16, max_steps=2, reg_epochs=5,
                         init_from=init_from, log=lambda *a: None)
 
 
@@ -505,7 +506,7 @@ def test_refit_heads_with_wider_box_noise_cuts_crops_on_wider_boxes(tiny_bundle,
         cs = bundle_training_crops(tiny_bundle, m, split, jitter_scale=scale, log=lambda *a: None)
         spread[scale] = np.std(np.log(cs.box[:, 2:] / exact.box[:, 2:]))
     assert spread[0.3] > 2 * spread[JITTER_SCALE], spread
-    m = refit_heads(tiny_bundle, split, out_dir=tmp_path / "wide", reg_minutes=0.01, jitter_scale=0.3,
+    m = refit_heads(tiny_bundle, split, out_dir=tmp_path / "wide", reg_epochs=5, jitter_scale=0.3,
                     log=lambda *a: None)
     assert m.heads["jitter_scale"] == 0.3
     assert any("scale0.3" in p.name for p in (tiny_bundle.parent / "lmo.work").glob("codes_*.npy"))
@@ -515,7 +516,7 @@ def test_refit_heads_keeps_the_encoder_and_writes_a_verified_bundle(tiny_bundle,
     from tracker.core.bundle import sha256
     from tracker.training.train import refit_heads
     before = {p.name: sha256(p) for p in tiny_bundle.iterdir() if p.is_file()}
-    m = refit_heads(tiny_bundle, tiny_bundle.parent / "split", out_dir=tmp_path / "refit", reg_minutes=0.01,
+    m = refit_heads(tiny_bundle, tiny_bundle.parent / "split", out_dir=tmp_path / "refit", reg_epochs=5,
                     log=lambda *a: None)
     assert {p.name: sha256(p) for p in tiny_bundle.iterdir() if p.is_file()} == before  # the source is untouched
     assert m.heads["rotation_frame"] == "ray" and m.name == "refit"
@@ -552,7 +553,7 @@ def test_join_heads_averages_refitted_heads_and_refuses_another_encoder(tiny_bun
     from tracker.runtime.heads import HeadEnsemble
     from tracker.training.train import refit_heads
     split = tiny_bundle.parent / "split"
-    refit_heads(tiny_bundle, split, out_dir=tmp_path / "second", reg_minutes=0.01, seed=1, log=lambda *a: None)
+    refit_heads(tiny_bundle, split, out_dir=tmp_path / "second", reg_epochs=5, seed=1, log=lambda *a: None)
     m = join_heads(tiny_bundle, [tmp_path / "second"], out_dir=tmp_path / "joined", log=lambda *a: None)
     assert m.heads["ensemble"]["members"] == 2
     joined = PoseEstimator(tmp_path / "joined")  # hashes verified on load

@@ -33,12 +33,11 @@ def test_training_passes_keep_a_float32_model_that_learns(tmp_path, precision):
     c = onehot(rng.integers(0, 2, 48), 2)
     model = AutoEncoder("cvam", 16, 8, 2, widths=(8, 16))
     before = [p.detach().clone() for p in model.parameters()]
-    hist = train_autoencoder(model, x[:40], x[:40], c[:40], x[40:], x[40:], c[40:], tmp_path, minutes=5,
-                             batch=8, patience=1000, precision=precision, log=lambda *a: None,
-                             max_epochs=3)
+    hist = train_autoencoder(model, x[:40], x[:40], c[:40], x[40:], x[40:], c[40:], tmp_path, max_steps=15,
+                             batch=8, patience=1000, precision=precision, log=lambda *a: None)  # 3 epochs of 5
     assert len(hist["epoch"]) == 3 and np.all(np.isfinite(hist["val_l2"]))
     assert hist["train_l2"][-1] < hist["train_l2"][0]
-    for p, b in zip(model.parameters(), before):
+    for p in model.parameters():
         assert p.dtype == torch.float32 and p.is_contiguous()  # what the ONNX export gets
     assert any(not torch.equal(p, b) for p, b in zip(model.parameters(), before))
 
@@ -87,6 +86,39 @@ def test_a_budgeted_autoencoder_ends_its_training_annealed_or_not(tmp_path, sche
         assert hist["lr"][-1] < 0.1e-3 and hist["lr"][0] > hist["lr"][-1]
     else:  # no plateau of 3 epochs in a loss still falling: the step size stays
         assert hist["lr"][0] == pytest.approx(1e-3)
+
+
+@pytest.mark.parametrize("schedule", ["budget", "plateau"])
+def test_a_step_budget_ends_the_autoencoders_training_whatever_the_clock(tmp_path, schedule, monkeypatch):
+    """``max_steps``: training ends after that many batches however long they take (a clock that
+    says an hour has passed at every reading stops nothing), the 'budget' schedule anneals over
+    the steps, and a resumed run counts the steps it ran before."""
+    from tests.conftest import FakeClock
+    from tracker.core.errors import UserError
+    from tracker.training.nets import fit
+    monkeypatch.setattr(fit, "time", FakeClock(tick=3600.0).module_time())
+    rng = np.random.default_rng(0)
+    x = np.broadcast_to((rng.random((48, 1, 1, 3)) * 255).astype(np.uint8), (48, 16, 16, 3)).copy()
+    c = onehot(rng.integers(0, 2, 48), 2)
+    steps = []
+    real = fit.augment
+    monkeypatch.setattr(fit, "augment", lambda *a, **k: steps.append(1) or real(*a, **k))  # once a batch
+
+    def run(max_steps):
+        model = AutoEncoder("cvam", 16, 8, 2, widths=(8, 16))
+        return train_autoencoder(model, x[:40], x[:40], c[:40], x[40:], x[40:], c[40:], tmp_path, minutes=0.01,
+                                 batch=8, patience=1000, precision="fp32", log=lambda *a: None,
+                                 lr_schedule=schedule, max_steps=max_steps)
+    hist = run(7)  # 5 batches an epoch: one whole epoch and 2 batches of the next
+    assert len(steps) == 7 and hist["epoch"] == [0, 1]
+    if schedule == "budget":  # the step size of the last step: 6 of 7 steps done
+        from tracker.training.nets.schedule import budget_lr
+        assert hist["lr"][-1] == pytest.approx(budget_lr(1e-3, 6 / 7, 6))
+    steps.clear()
+    hist = run(12)  # resumed (its checkpoint: after epoch 1): 12 - 10 = 2 steps more
+    assert len(steps) == 2 and hist["epoch"] == [0, 1, 2]
+    with pytest.raises(UserError, match="step budget"):
+        run(0)
 
 
 def test_an_unknown_schedule_is_refused(tmp_path):

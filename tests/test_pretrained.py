@@ -70,7 +70,7 @@ def test_a_tiny_training_run_with_the_pretrained_trunk_exports_and_estimates(dat
     split = tmp_path / "split"
     generate(SynthConfig(models_dir=str(data_dir / "lmo" / "models"), backgrounds_dir=str(data_dir / "backgrounds"),
                          obj_ids=[1, 9], seed=5, objects_per_image=(2, 2)), split, 4, workers=1, progress=False)
-    m = train_bundle(split, tmp_path / "b", method="cvam", size=32, latent=16, minutes=0.05, reg_epochs=2,
+    m = train_bundle(split, tmp_path / "b", method="cvam", size=32, latent=16, max_steps=2, reg_epochs=2,
                      encoder="lite0", lr=3e-4, batch=8, log=lambda *a: None)
     assert m.encoder == "lite0" and m.training["pretrained"] and m.training["onnx_max_abs_diff"] <= 1e-4
     est = PoseEstimator(tmp_path / "b")
@@ -102,7 +102,7 @@ def test_a_detector_trains_on_the_pretrained_trunk_and_exports(tiny_bundle, tmp_
     from tracker.runtime.detector import Detector
     root = tmp_path / "lmo"
     shutil.copytree(tiny_bundle, root)
-    d = train_detector(tiny_bundle.parent / "split", root, minutes=0.02, width=4, batch=2, input_w=128, input_h=96,
+    d = train_detector(tiny_bundle.parent / "split", root, max_steps=3, width=4, batch=2, input_w=128, input_h=96,
                        backbone="lite0", log=lambda *a: None)
     assert (d["mean"], d["std"]) == IMAGENET_MEAN_STD and d["training"]["backbone"] == "lite0"
     assert d["training"]["pretrained"] and d["training"]["onnx_max_abs_diff"] <= 1e-4
@@ -112,7 +112,7 @@ def test_a_detector_trains_on_the_pretrained_trunk_and_exports(tiny_bundle, tmp_
     m = CenterNetPretrained(8, 4, "lite0", pretrained=False).train()  # the control: BatchNorm learns
     assert all(b.training for b in m.trunk.modules() if isinstance(b, torch.nn.BatchNorm2d))
     with pytest.raises(UserError, match="--backbone"):
-        train_detector(tiny_bundle.parent / "split", root, minutes=0.01, backbone="resnet", log=lambda *a: None)
+        train_detector(tiny_bundle.parent / "split", root, max_steps=1, backbone="resnet", log=lambda *a: None)
 
 
 def test_the_random_weights_control_trains_its_batchnorm():

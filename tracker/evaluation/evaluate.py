@@ -21,7 +21,8 @@ def bop_csv_name(method: str, dataset: str = "lmo", split: str = "test") -> str:
 
 def evaluate(model_dir, scene_dir, json_path=None, boxes: str = "gt", mode: str = "regression",
              bop_csv=None, max_frames: int | None = None, progress: bool = True,
-             detector_trees_weight: float | None = None, gt_models=None, per_instance=None) -> dict:
+             detector_trees_weight: float | None = None, gt_models=None, per_instance=None,
+             candidates_per_object: int | None = None, candidate_floor: float | None = None) -> dict:
     """``detector_trees_weight``: the trees' share of the distance for the detector's boxes in
     place of the bundle's (``app.py lab tune-heads`` tries several).
 
@@ -29,6 +30,9 @@ def evaluate(model_dir, scene_dir, json_path=None, boxes: str = "gt", mode: str 
     of its objects; the others still hide parts of them when their meshes are found
     (``gt_models``, else a BOP ``models/`` folder beside or above the scene that has them),
     else they are left out (visibility from the bundle's objects alone, said on stderr).
+
+    ``candidates_per_object`` / ``candidate_floor``: the detector's verified candidates per object and their
+    score floor in place of the bundle's (:class:`tracker.runtime.detector.DetectorSpec`).
 
     ``per_instance``: a CSV to write with one row per scored ground-truth instance (its errors,
     pass / fail per threshold: :func:`tracker.evaluation.scoring.per_instance_rows`), the input of
@@ -48,6 +52,11 @@ def evaluate(model_dir, scene_dir, json_path=None, boxes: str = "gt", mode: str 
     if boxes == "detector":
         from tracker.runtime.detector import Detector
         detector = Detector(est.bundle, threads=2)
+        from dataclasses import replace
+        if candidates_per_object is not None:
+            detector.spec = replace(detector.spec, candidates=int(candidates_per_object))
+        if candidate_floor is not None:
+            detector.spec = replace(detector.spec, candidate_floor=float(candidate_floor))
     scene = load_scene(scene_dir, require_gt=True)
     im_ids = sorted(scene.gt)[:max_frames] if max_frames else sorted(scene.gt)
     if not im_ids:
@@ -83,12 +92,14 @@ def evaluate(model_dir, scene_dir, json_path=None, boxes: str = "gt", mode: str 
         if detector is not None:
             dets, candidates = detector.detect(img, candidates=True)
             det_ms.append(1000 * (time.perf_counter() - t0))
-            all_dets.append(dets)
             all_candidates.append(candidates)
         else:
             dets = [Detection(o, b, exact=True) for o, b, _ in gt_instances_with_boxes(scene.gt[im_id], box_of[im_id])
                     if o in ours]
         poses = est.estimate(img, scene.K(im_id), dets, mode=mode)
+        if detector is not None:  # the operating point: the boxes the poses were made from
+            grouped = any(d.group is not None for d in dets)
+            all_dets.append([Detection(p.obj_id, p.box, p.detector_score) for p in poses] if grouped else dets)
         dt = time.perf_counter() - t0
         t_all += dt
         results += [Estimate(0, im_id, p.obj_id, p.score, p.R, p.t, dt) for p in poses]

@@ -43,6 +43,11 @@ class DetectorSpec:
     pad_value: int = 114
     file: str = "detector.onnx"
     boxes: str = "visible"           # what a box covers: the visible part, or the whole object ("amodal")
+    # verified candidates (with max_per_class 1): an object whose best peak reaches score_thresh
+    # comes with up to `candidates` boxes (class-wise NMS, each scoring >= candidate_floor); the
+    # pose pipeline poses them all and keeps the most confident (PoseEstimator.estimate)
+    candidates: int = 1
+    candidate_floor: float = 0.05
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -116,7 +121,9 @@ def decode(maps: np.ndarray, spec: DetectorSpec, lb: Letterbox | None = None,
     C = len(spec.classes)
     if maps.ndim != 3 or maps.shape[0] != C + 4:
         raise UserError(f"detector output has shape {maps.shape}; expected ({C + 4}, h, w)")
-    ci, yi, xi, sc = peaks(maps[:C], 4 * spec.max_dets, spec.score_thresh)
+    verify = spec.max_per_class == 1 and spec.candidates > 1
+    floor = min(spec.score_thresh, spec.candidate_floor) if verify else spec.score_thresh
+    ci, yi, xi, sc = peaks(maps[:C], 4 * spec.max_dets * (spec.candidates if verify else 1), floor)
     if len(sc) == 0:
         return []
     lw, lh, ox, oy = (maps[C + j, yi, xi] for j in range(4))
@@ -132,6 +139,8 @@ def decode(maps: np.ndarray, spec: DetectorSpec, lb: Letterbox | None = None,
     ok = (boxes[:, 2] > 1) & (boxes[:, 3] > 1)  # boxes clipped to nothing never take a slot
     boxes, ci, sc = boxes[ok], ci[ok], sc[ok]
     out: list[Detection] = []
+    if verify:
+        return _candidates(boxes, ci, sc, spec)
     for c in np.unique(ci):
         m = np.nonzero(ci == c)[0]
         # one per object: the best peak, which NMS would keep first (ties: the first, as NMS)
@@ -139,6 +148,22 @@ def decode(maps: np.ndarray, spec: DetectorSpec, lb: Letterbox | None = None,
         out += [Detection(int(spec.classes[c]), boxes[m[j]], float(sc[m[j]])) for j in keep]
     out.sort(key=lambda d: -d.score)
     return out[:spec.max_dets]
+
+
+def _candidates(boxes: np.ndarray, ci: np.ndarray, sc: np.ndarray, spec: DetectorSpec) -> list[Detection]:
+    """Each object whose best peak reaches ``score_thresh`` (at most ``max_dets`` objects, best
+    first): its best box and the next ones that NMS keeps, up to ``candidates``, all in one
+    ``group`` (the object's id) that the pose pipeline reduces to its most confident pose."""
+    groups = []
+    for c in np.unique(ci):
+        m = np.nonzero(ci == c)[0]
+        if sc[m].max() < spec.score_thresh:
+            continue
+        keep = nms(boxes[m], sc[m], spec.nms_iou)[:spec.candidates]
+        obj = int(spec.classes[c])
+        groups.append([Detection(obj, boxes[m[j]], float(sc[m[j]]), group=obj) for j in keep])
+    groups.sort(key=lambda g: -g[0].score)
+    return [d for g in groups[:spec.max_dets] for d in g]
 
 
 def nms(boxes: np.ndarray, scores: np.ndarray, iou: float) -> list[int]:

@@ -25,6 +25,7 @@ class Detection:
     box: np.ndarray  # (x, y, w, h) in the frame's pixels
     score: float = 1.0
     exact: bool = False  # a ground-truth box, not a detector's (the head weighs its distance cues by it)
+    group: int | None = None  # candidates of one object share a group: the most confident pose is kept
 
 
 @dataclass
@@ -35,6 +36,23 @@ class PoseEstimate:
     score: float  # the pose's confidence (:mod:`tracker.runtime.confidence`), BOP's score column
     box: np.ndarray
     detector_score: float = 1.0  # the box's own score (1 for ground truth)
+
+
+def most_confident(pairs: list[tuple[Detection, PoseEstimate]]) -> list[PoseEstimate]:
+    """The poses of (detection, pose) pairs, one per candidate group: its most confident pose
+    (ties: the first, the detector's better box), at the place of the group's first pose;
+    detections without a group keep their pose."""
+    out: list[PoseEstimate] = []
+    where: dict[int, int] = {}
+    for d, p in pairs:
+        if d.group is None:
+            out.append(p)
+        elif d.group not in where:
+            where[d.group] = len(out)
+            out.append(p)
+        elif p.score > out[where[d.group]].score:
+            out[where[d.group]] = p
+    return out
 
 
 def trees_weights(manifest) -> dict[str, float]:
@@ -139,13 +157,14 @@ class PoseEstimator:
         w = np.array([self.trees_weight["exact" if d.exact else "detector"] for d in dets])
         with self._pools.limit(limits=1) if self._pools is not None else contextlib.nullcontext():
             R, t = self.head.predict(mu, ids, boxes, K, mode=mode, trees_weight=w)
-            out = []
+            pairs = []
             sim = self.code_similarity(mu, ids)
             for d, r, tt, s in zip(dets, R, t, sim):
                 if not (np.all(np.isfinite(r)) and np.all(np.isfinite(tt))):
                     continue  # NaN from a degenerate crop: no estimate rather than garbage
                 agree = box_agreement(self.points(d.obj_id), K, r, tt, d.box)
-                out.append(PoseEstimate(d.obj_id, r, tt, confidence(d.score, s, agree), d.box, float(d.score)))
+                pairs.append((d, PoseEstimate(d.obj_id, r, tt, confidence(d.score, s, agree), d.box, float(d.score))))
+            out = most_confident(pairs)
         if timings is not None:
             timings["encode"] = 1000 * (t1 - t0)
             timings["regress"] = 1000 * (time.perf_counter() - t1)

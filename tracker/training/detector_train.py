@@ -173,7 +173,7 @@ def _uncovered(b, covered, max_covered: float):
     """The boxes of ``b`` ([class, x, y, w, h] rows) at most ``max_covered`` hidden by ``covered``."""
     H, W = covered.shape
     keep = []
-    for c, bx, by, bw, bh in b:
+    for _, bx, by, bw, bh in b:
         c0, r0 = int(max(bx, 0)), int(max(by, 0))
         c1, r1 = int(min(np.ceil(bx + bw), W)), int(min(np.ceil(by + bh), H))
         area = max(c1 - c0, 0) * max(r1 - r0, 0)
@@ -458,7 +458,8 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
                    paste_objects: float = 0.0, cutouts=None, cutout_share: float | None = None, log=print,
                    command: str | None = None, precision: str = "auto", box_kind: str = "visible",
                    colour: str = "standard", ema: float = 0.0, backbone: str = "plain",
-                   pretrained: bool = True, device: str = "cpu", stage_minutes: float | None = None) -> dict:
+                   pretrained: bool = True, device: str = "cpu", stage_minutes: float | None = None,
+                   max_steps: int | None = None) -> dict:
     """``stage_minutes``: the whole call's budget (``build``): training gets ``minutes`` or what
     is left of it after loading the images, less :data:`AFTER_MINUTES` for validation and
     export. ``backbone``: ``plain`` (:class:`CenterNetLite` from random weights) or an
@@ -467,7 +468,10 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     (``amodal``, clipped to the image: a box's size and centre then follow the object's
     distance and position behind whatever hides part of it). ``ema`` > 0: validate and export
     the exponential moving average of the weights with this decay (``ema_update``), not the
-    last weights.
+    last weights. ``max_steps``: a budget of training steps (the resumed run's included) instead
+    of time: training ends after that many, however long they take (``minutes`` and
+    ``stage_minutes`` then end nothing, and the step size's cosine runs over the steps), so a
+    seed gives the same network on any machine.
 
     Under ``torchrun --nproc_per_node N`` (DistributedDataParallel: gloo on CPUs, NCCL on GPUs)
     the N processes share every batch; the first one validates, exports and writes the bundle
@@ -482,6 +486,8 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     if backbone != "plain" and init_from and Path(init_from).is_dir():
         raise UserError("--init-from BUNDLE reads back a plain detector; with --backbone "
                         f"{backbone} start from a checkpoint (detector_ckpt_*.pt) instead")
+    if max_steps is not None and not (isinstance(max_steps, int) and max_steps >= 1):
+        raise UserError(f"the step budget must be a whole number of at least 1, not {max_steps}")
     if not 0.0 <= ema < 1.0:
         raise UserError(f"--ema is a decay in [0, 1) (0: off; 0.999 averages about the last 1,000 steps), not {ema}")
     if paste_objects > 0 and occlusion <= 0:  # before torch is imported: nothing to wait for
@@ -577,9 +583,14 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     budget = 60.0 * minutes
     log(f"detector ({backbone}{', ImageNet weights' if backbone != 'plain' and pretrained else ''}): "
         f"{n_params / 1e6:.2f} M parameters, {len(tr)} train / {len(va)} validation images, "
-        f"{input_w}x{input_h} input, budget {minutes:.0f} min, {precision} training passes on {device}")
-    bar = tqdm(total=int(budget), initial=int(min(state["seconds"], budget)), unit="s", desc="detector",
-               disable=rank != 0)
+        f"{input_w}x{input_h} input, budget {f'{max_steps} steps' if max_steps is not None else f'{minutes:.0f} min'}, "
+        f"{precision} training passes on {device}")
+    if max_steps is not None:
+        bar = tqdm(total=max_steps, initial=min(state["step"], max_steps), unit="step", desc="detector",
+                   disable=rank != 0)
+    else:
+        bar = tqdm(total=int(budget), initial=int(min(state["seconds"], budget)), unit="s", desc="detector",
+                   disable=rank != 0)
     last_ckpt = time.perf_counter()
     run_start = time.perf_counter() - state["seconds"]
     losses = []
@@ -605,10 +616,15 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
             from torch.nn.parallel import DistributedDataParallel
             net = DistributedDataParallel(net, device_ids=[torch.cuda.current_device()] if device == "cuda" else None)
         while True:
-            spent = dd.max_over_ranks(state["seconds"])  # one clock: the same step size and last step everywhere
-            if spent >= budget:
-                break
-            frac = spent / budget
+            if max_steps is not None:  # the same on every process
+                if state["step"] >= max_steps:
+                    break
+                frac = state["step"] / max_steps
+            else:
+                spent = dd.max_over_ranks(state["seconds"])  # one clock: the same step size and last step everywhere
+                if spent >= budget:
+                    break
+                frac = spent / budget
             for gr in opt.param_groups:
                 gr["lr"] = budget_lr(lr, frac, state["step"], warmup=200)
             b_rng = np.random.default_rng([seed, state["step"]])
@@ -637,7 +653,7 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
             state["step"] += 1
             now = time.perf_counter()
             state["seconds"] = now - run_start
-            bar.n = int(min(state["seconds"], budget))
+            bar.n = state["step"] if max_steps is not None else int(min(state["seconds"], budget))
             bar.set_postfix(step=state["step"], loss=f"{np.mean(losses[-50:]):.3f}")
             if now - last_ckpt > 300:
                 state["history"].append({"step": state["step"], "minutes": round(state["seconds"] / 60, 2),
@@ -682,6 +698,7 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     d = spec.to_dict()
     d["training"] = {"data": str(data_dir), "images": len(tr), "validation": len(va), "parameters": n_params,
                      "width": width, "steps": state["step"], **recipe,
+                     **({"max_steps": max_steps} if max_steps is not None else {}),
                      **({"cutouts_dir": str(cutouts)} if cutouts else {}),
                      "minutes": round(state["seconds"] / 60, 1), "precision": precision, "device": device,
                      "processes": n_proc,

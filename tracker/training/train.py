@@ -330,7 +330,7 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
                  precision: str = "auto", reg_epochs: int | None = None, lr: float = 1e-3, batch: int = 128,
                  pretrained: bool = True, device: str = "auto", kl_warmup: int = 0,
                  stage_minutes: float | None = None, lr_schedule: str = "plateau",
-                 head_sets: int = 1) -> Manifest | None:
+                 head_sets: int = 1, max_steps: int | None = None) -> Manifest | None:
     """``stage_minutes``: the whole call's budget (``build``): the autoencoder trains for
     ``minutes`` or less, so that cutting both crop sets, the heads and the export fit in it too
     (:func:`training_minutes`). ``encoder``: plain | resnet | lite0 | lite1 | lite2 (an ImageNet-pretrained trunk; with
@@ -340,7 +340,9 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
     autoencoder together (each takes 1/N of every batch: the same recipe, N times the compute);
     the first one then fits the heads and writes the bundle, the others return None.
     ``head_sets``: head sets fitted (seeds ``seed``, ``seed + 1``, ...) and averaged
-    (:func:`fit_head_sets`), each with ``reg_minutes``."""
+    (:func:`fit_head_sets`), each with ``reg_minutes``. ``max_steps``: the autoencoder's budget in
+    training steps instead of ``minutes`` (the same run on any machine; with ``reg_epochs``, the
+    whole bundle is; :func:`tracker.training.nets.fit.train_autoencoder`)."""
     torch = require_torch()
     from tracker.training.crops import CropSet, build_training_crops, crops_cache_path, train_val_split
     from tracker.core.meshes import load_models
@@ -401,10 +403,12 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
     model = AutoEncoder(method, size, latent, n_obj, encoder=encoder, pretrained=pretrained)
     n_params = sum(p.numel() for p in model.parameters())
     log(f"{method}: {n_params / 1e6:.2f} M parameters, {len(tr)} train / {len(va)} validation crops, "
-        f"{n_obj} objects, budget {minutes:.0f} min, {precision} training passes")
+        f"{n_obj} objects, budget {f'{max_steps} steps' if max_steps is not None else f'{minutes:.0f} min'}, "
+        f"{precision} training passes")
     hist = train_autoencoder(model, cs.x[tr], cs.y[tr], c_all[tr], cs.x[va], cs.y[va], c_all[va], work,
                              minutes=minutes, seed=seed, init_from=init_from, precision=precision, log=log,
-                             lr=lr, batch=batch, device=device, kl_warmup=kl_warmup, lr_schedule=lr_schedule)
+                             lr=lr, batch=batch, device=device, kl_warmup=kl_warmup, lr_schedule=lr_schedule,
+                             max_steps=max_steps)
 
     if rank != 0:  # the heads, the codebook and the export are the first process's
         dd.finish()
@@ -434,7 +438,7 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
             kept_detector = (det, (out / det["file"]).read_bytes())
             log(f"keeping the bundle's detector ({det['file']})")
 
-    def _write_bundle(dest: Path, name: str) -> None:
+    def _write_bundle(dest: Path, name: str) -> Manifest:  # the files; the manifest to hash
         (dest / "meshes").mkdir(parents=True, exist_ok=True)
         save_head(head, dest / "pose_head.json", dest / "pose_head.npz")
         save_codebook(codebook, dest / "codebook.npz")
@@ -469,6 +473,7 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
                       "crops": len(cs), "train": len(tr), "validation": len(va), "ae_parameters": n_params,
                       "ae_epochs": len(hist["epoch"]), "ae_best_val_l2": float(min(hist["val_l2"])),
                       "ae_minutes": round(hist["seconds"][-1] / 60, 1) if hist["seconds"] else 0.0,
+                      **({"ae_max_steps": max_steps} if max_steps is not None else {}),
                       "total_minutes": round((time.perf_counter() - t0) / 60, 1),
                       "knn": dist_info["knn"], "seed": seed, "precision": precision, "device": device, "lr": lr, "lr_schedule": lr_schedule, "batch": batch,
                       # BatchNorm after every conv (folded into the exported convs), read off the network
@@ -493,16 +498,16 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
             (dest / det["file"]).write_bytes(blob)
             manifest.detector = det
             manifest.artefacts["detector"] = det["file"]
-        write_manifest(dest, manifest)
-        add_overlay_meshes(dest, OVERLAY_FACES, log=lambda *a: None)  # light meshes for the live overlay
+        return manifest
 
     from tracker.training.decimate import add_overlay_meshes
-    from tracker.core.bundle import read_verified_manifest, staged_bundle, write_manifest
-    with staged_bundle(None, out) as stage:  # the old bundle stays until the new one is whole
-        _write_bundle(stage, out.name)
+    from tracker.core.bundle import bundle_writer
+    with bundle_writer(None, out) as w:  # the old bundle stays until the new one is whole
+        w.manifest = _write_bundle(w.folder, out.name)
+        w.apply(lambda folder: add_overlay_meshes(folder, OVERLAY_FACES, log=lambda *a: None))  # for the live overlay
     total = sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
     log(f"bundle {out}: {total / 1e6:.1f} MB, {(time.perf_counter() - t0) / 60:.1f} min in all")
-    return read_verified_manifest(out)
+    return w.manifest
 
 
 def refit_heads(model_dir, data_dir, out_dir=None, seed: int = 0, reg_minutes: float = 5.0,
@@ -515,7 +520,7 @@ def refit_heads(model_dir, data_dir, out_dir=None, seed: int = 0, reg_minutes: f
     trees existed). ``jitter_scale``: the log-size noise of the jittered boxes (default
     :data:`~tracker.training.crops.JITTER_SCALE`, what the autoencoder trained on)."""
     require_torch()  # the MLPs train with torch
-    from tracker.core.bundle import read_verified_manifest, staged_bundle, write_manifest
+    from tracker.core.bundle import bundle_writer
     from tracker.training.crops import JITTER_SCALE, bundle_training_crops, crops_cache_path, train_val_split
     from tracker.runtime.estimator import PoseEstimator
     jitter_scale = JITTER_SCALE if jitter_scale is None else jitter_scale
@@ -576,10 +581,9 @@ def refit_heads(model_dir, data_dir, out_dir=None, seed: int = 0, reg_minutes: f
                   "minutes": round((time.perf_counter() - t0) / 60, 1),
                   "command": command or "app.py " + " ".join(sys.argv[1:]),
                   "created": time.strftime("%Y-%m-%d %H:%M:%S")}
-    with staged_bundle(src.root, out) as stage:
-        save_head(head, stage / src.manifest.artefacts["pose_head"], stage / src.manifest.artefacts["pose_head_arrays"])
-        save_codebook(codebook, stage / src.manifest.artefacts["codebook"])
-        write_manifest(stage, m)
-    manifest = read_verified_manifest(out)
+    with bundle_writer(src, out) as w:
+        w.manifest = m
+        save_head(head, w.folder / src.manifest.artefacts["pose_head"], w.folder / src.manifest.artefacts["pose_head_arrays"])
+        save_codebook(codebook, w.folder / src.manifest.artefacts["codebook"])
     log(f"bundle {out}: heads refitted in {(time.perf_counter() - t0) / 60:.1f} min")
-    return manifest
+    return w.manifest

@@ -13,11 +13,12 @@ import torch
 from torch.nn import functional as F
 from tqdm import tqdm
 
+from tracker.core.defaults import LR_SCHEDULES
 from tracker.core.errors import UserError
 from tracker.core.files import write_whole
 from tracker.training.nets import precision as prec
 from tracker.training.nets.autoencoder import AutoEncoder, loss_terms
-from tracker.training.nets.schedule import LR_SCHEDULES, budget_lr
+from tracker.training.nets.schedule import budget_lr
 
 KL_ALPHA = 0.1  # Table 4.6
 # a checkpoint inside an epoch at least this often (an epoch of 150 k crops takes 20 min on a CPU):
@@ -116,8 +117,9 @@ def _flushing_subnormals(fn):
 def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, out_dir: Path,
                       minutes: float = 45.0, batch: int = 128, lr: float = 1e-3, patience: int = 50,
                       seed: int = 0, init_from=None, precision: str = "fp32", max_epochs: int = 1000,
-                      log=print, device: str = "cpu", kl_warmup: int = 0, lr_schedule: str = "plateau") -> dict:
-    """Train until the time budget, early stopping, or ``max_epochs``. Resumes from
+                      log=print, device: str = "cpu", kl_warmup: int = 0, lr_schedule: str = "plateau",
+                      max_steps: int | None = None) -> dict:
+    """Train until the time budget (or the step budget), early stopping, or ``max_epochs``. Resumes from
     ``out_dir/ae_checkpoint.pt`` when it exists; otherwise ``init_from`` (another run's
     checkpoint) gives the starting weights and optimiser state, with a fresh budget, history
     and best validation loss (the validation crops differ). ``precision`` ('auto', 'bf16' or
@@ -127,6 +129,11 @@ def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, ou
     steps (0: full weight from the first step).
     ``lr_schedule``: 'budget' anneals the step size by a cosine over ``minutes`` (to 2 % of
     ``lr`` at the end); 'plateau' divides it by 5 after 3 epochs without a better validation L2.
+    ``max_steps``: a budget of training steps (batches) instead of time: training ends after that
+    many, however long they take (``minutes`` then ends nothing, and 'budget' anneals over the
+    steps), so a seed gives the same run on any machine. Steps are counted as the KL warm-up
+    counts them: a resumed run's earlier epochs count whole (one that a budget ended part-way,
+    then validated, is done, as with a time budget).
     A checkpoint is written after every epoch, every ``CHECKPOINT_SECONDS`` within one, and on
     Ctrl-C (or SIGTERM made Ctrl-C), which is then raised again; a resumed run goes on from the
     batch it stopped at, with the same order of crops and random draws. Returns the training history."""
@@ -134,6 +141,8 @@ def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, ou
     rank, n_proc = dd.world()  # several processes under torchrun: each takes its share of every batch
     if lr_schedule not in LR_SCHEDULES:
         raise UserError(f"unknown step-size schedule '{lr_schedule}' (choose from {', '.join(LR_SCHEDULES)})")
+    if max_steps is not None and not (isinstance(max_steps, int) and max_steps >= 1):
+        raise UserError(f"the step budget must be a whole number of at least 1, not {max_steps}")
     torch.manual_seed(seed)
     model.to(device)
     net = model
@@ -208,6 +217,8 @@ def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, ou
             pos, tot, cnt = 0, 0.0, 0
         # every process takes the same number of steps (a partial last batch too small to share is left out)
         starts = [i for i in range(0, n, batch) if min(batch, n - i) >= n_proc]
+        if max_steps is not None and epoch * len(starts) + pos >= max_steps:  # a resumed run done already
+            break
         bar = tqdm(total=len(starts), initial=pos, desc=f"epoch {epoch}", unit="batch", leave=False,
                    disable=rank != 0)
         try:
@@ -217,7 +228,9 @@ def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, ou
                 yb = to_tensor(y_tr[idx]).to(device)
                 cb = c_tr[idx].to(device) if cond else None
                 if lr_schedule == "budget":  # one clock: the same step size on every process under torchrun
-                    step_lr = budget_lr(lr, dd.max_over_ranks(time.perf_counter() - t_start) / (minutes * 60), step)
+                    frac = (step / max_steps if max_steps is not None
+                            else dd.max_over_ranks(time.perf_counter() - t_start) / (minutes * 60))
+                    step_lr = budget_lr(lr, frac, step)
                     for gr in opt.param_groups:
                         gr["lr"] = step_lr
                 with prec.autocast(precision, device):
@@ -235,7 +248,8 @@ def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, ou
                 if time.perf_counter() - last_save > CHECKPOINT_SECONDS:
                     save_part()
                     last_save = time.perf_counter()
-                if dd.any_rank(time.perf_counter() - t_start > minutes * 60):
+                if dd.any_rank(step + 1 >= max_steps if max_steps is not None
+                               else time.perf_counter() - t_start > minutes * 60):
                     break
             bar.close()
             val = evaluate_l2(model, x_va, y_va, c_va if cond else None, batch=256)
@@ -261,7 +275,8 @@ def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, ou
             f"lr {opt.param_groups[0]['lr']:.1e}, {spent / 60:.1f} min")
         save(epoch, spent)
         last_save = time.perf_counter()
-        if dd.any_rank(since_best >= patience or spent > minutes * 60):
+        over = epoch * len(starts) + pos >= max_steps if max_steps is not None else spent > minutes * 60
+        if dd.any_rank(since_best >= patience or over):
             break
     dd.barrier()  # the best weights are written
     model.load_state_dict(torch.load(best_path, weights_only=True, map_location=device))
