@@ -241,7 +241,7 @@ def add_commands(sub, REPO) -> None:
     s.set_defaults(func=cmd_prepare_models)
 
     s = sub.add_parser("compare", help="two 'eval --per-instance' files of one scene: each figure's difference "
-                                       "with a paired-bootstrap 95 % interval over frames, and the keep rule")
+                                       "with a paired-bootstrap 95 %% interval over frames, and the keep rule")
     s.add_argument("a", help="per-instance CSV of the baseline (A)")
     s.add_argument("b", help="per-instance CSV of the variant (B)")
     s.add_argument("--json", required=True, help="comparison JSON to write")

@@ -1,0 +1,63 @@
+"""Verified candidates: an object's several detector boxes are all posed and the most confident
+pose is kept (DetectorSpec.candidates), so a wrong top box loses to a right second one."""
+import numpy as np
+import pytest
+
+from tests.conftest import REPO
+from tests.test_detector import _maps
+from tracker.runtime.detector import DetectorSpec, decode
+from tracker.runtime.estimator import Detection, PoseEstimate, most_confident
+
+
+def test_decode_groups_an_objects_candidates_and_keeps_presence_at_the_threshold():
+    spec = DetectorSpec(classes=[1, 5], score_thresh=0.3, candidates=3, candidate_floor=0.05)
+    m = _maps(spec, [(0, 5, 5, 0.9, 24, 24, 0, 0), (0, 20, 30, 0.2, 24, 24, 0, 0),   # object 1: two places
+                     (0, 5, 6, 0.85, 24, 24, 0, 0),                                   # a near copy of its best
+                     (0, 25, 2, 0.03, 24, 24, 0, 0),                                  # under the floor
+                     (1, 12, 12, 0.25, 24, 24, 0, 0)])                                # object 5: under 0.3
+    dets = decode(m, spec)
+    # object 5's best peak is under the run-time threshold: not present, whatever its candidates
+    assert [(d.obj_id, d.group, round(d.score, 2)) for d in dets] == [(1, 1, 0.9), (1, 1, 0.2)]
+    spec.candidates = 1  # off: the one best box, no group, as before
+    assert [(d.obj_id, d.group, round(d.score, 2)) for d in decode(m, spec)] == [(1, None, 0.9)]
+
+
+def _pose(obj, score):
+    return PoseEstimate(obj, np.eye(3), np.zeros(3), score, np.zeros(4))
+
+
+def test_most_confident_keeps_one_pose_per_group_and_ungrouped_ones():
+    a, b, c = Detection(1, np.zeros(4), 0.9, group=1), Detection(1, np.zeros(4), 0.4, group=1), Detection(2, np.zeros(4))
+    pa, pb, pc = _pose(1, 0.2), _pose(1, 0.6), _pose(2, 0.1)
+    assert most_confident([(a, pa), (c, pc), (b, pb)]) == [pb, pc]  # the group's best, at its first place
+    tie = _pose(1, 0.2)
+    assert most_confident([(a, pa), (b, tie)])[0] is pa                  # a tie keeps the detector's better box
+    # ground-truth boxes of two instances of one object have no group: both kept
+    assert most_confident([(Detection(1, np.zeros(4)), pa), (Detection(1, np.zeros(4)), pb)]) == [pa, pb]
+
+
+def test_a_wrong_top_box_loses_to_the_right_second_one(data_dir):
+    """models/lmo on a dev frame: the duck's top candidate is a box on the background, its second
+    the duck's own box; the pose kept is the one made from the duck's box."""
+    from tracker.core.bop import load_scene
+    from tracker.evaluation.ground_truth import gt_boxes
+    from tracker.core.meshes import load_models
+    from tracker.runtime.estimator import PoseEstimator
+    scene = load_scene(data_dir / "lmo" / "dev", require_gt=True)
+    im = sorted(scene.gt)[0]
+    models = load_models(data_dir / "lmo" / "models")
+    box_of, _ = gt_boxes(scene, models, [im])
+    k = next(j for j, g in enumerate(scene.gt[im]) if g.obj_id == 9)
+    right = np.asarray(box_of[im][k][0], float)
+    wrong = right.copy()
+    wrong[:2] = (right[0] + 250) % 500, (right[1] + 180) % 360   # the same size, elsewhere
+    est = PoseEstimator(REPO / "models" / "lmo")
+    img, K = scene.read_rgb(im), scene.K(im)
+    dets = [Detection(9, wrong, 0.9, group=9), Detection(9, right, 0.5, group=9)]
+    (p,) = est.estimate(img, K, dets)
+    assert np.allclose(p.box, right)
+    gt = scene.gt[im][k]
+    assert np.linalg.norm(p.t - gt.t) < 0.2 * np.linalg.norm(gt.t)   # a pose of the duck, near it
+    # without the group the two boxes give two poses, the wrong one first
+    both = est.estimate(img, K, [Detection(9, wrong, 0.9), Detection(9, right, 0.5)])
+    assert len(both) == 2 and both[0].score < p.score == pytest.approx(both[1].score)
