@@ -819,3 +819,10 @@ def test_ema_averages_the_weights_and_is_what_is_exported(tiny_bundle, tmp_path)
         not torch.equal(ckpt["ema"][k], ckpt["model"][k].float()) for k in ckpt["ema"])
     with pytest.raises(UserError, match=r"with --ema 0\.99: rerun"):
         train_detector(tiny_bundle.parent / "split", root, max_steps=10, width=4, batch=2, log=lambda *a: None)
+
+
+def test_join_detectors_refuses_a_from_that_is_no_bundle(tiny_detector_bundle, tmp_path):
+    from tracker.research.detector_ensemble import join_detectors
+    with pytest.raises(UserError, match=f"{tmp_path}: not a model bundle"):
+        join_detectors(tiny_detector_bundle, [tmp_path], out_dir=tmp_path / "j", log=lambda *a: None)
+    assert not (tmp_path / "j").exists()
