@@ -95,3 +95,25 @@ def test_the_conversion_reads_a_manifest_and_writes_the_same_npz_twice(tmp_path)
     assert (tmp_path / "a.npz").read_bytes() == (tmp_path / "b.npz").read_bytes()
     with np.load(tmp_path / "a.npz", allow_pickle=False) as z:
         assert sorted(z.files) == ["k", "p/perm"] and np.array_equal(z["k"], w["k"])
+
+
+def test_a_detector_trains_on_the_coco_trunk_and_exports(tiny_bundle, tmp_path):
+    """A tiny run of train-detector --backbone nanodet: the COCO trunk and neck under our heads,
+    input RGB / 255, ONNX export within 1e-4 (checked by train_detector), the trunk's weights
+    moved from COCO's, and the run-time detector decodes its output."""
+    import shutil
+    from tracker.core.bundle import open_bundle
+    from tracker.runtime.detector import Detector
+    from tracker.training.detector_train import train_detector
+    from tracker.training.nets.detector import COCO_MEAN_STD, CenterNetCoco
+    root = tmp_path / "lmo"
+    shutil.copytree(tiny_bundle, root)
+    d = train_detector(tiny_bundle.parent / "split", root, max_steps=2, batch=2, input_w=128, input_h=96,
+                       backbone="nanodet", log=lambda *a: None)
+    assert (d["mean"], d["std"]) == COCO_MEAN_STD and d["training"]["backbone"] == "nanodet"
+    assert d["training"]["pretrained"] and d["training"]["onnx_max_abs_diff"] <= 1e-4
+    out = Detector(open_bundle(root))(np.full((480, 640, 3), 120, np.uint8))
+    assert all(o.obj_id in open_bundle(root).manifest.obj_ids for o in out)
+    coco, control = CenterNetCoco(8), CenterNetCoco(8, pretrained=False)
+    w = "backbone.stem.0.weight"
+    assert not torch.equal(coco.trunk.state_dict()[w], control.trunk.state_dict()[w])  # COCO's, not random

@@ -6,6 +6,7 @@ import argparse
 import sys
 
 from tracker.cli.args import id_list, nonnegative_int, positive_float, positive_int
+from tracker.core.defaults import DETECTOR_BACKBONES
 from tracker.cli.common import para
 from tracker.core.defaults import SYNTH_FACES
 from tracker.core.errors import UserError
@@ -37,7 +38,7 @@ def add_build(sub, REPO) -> None:
     s.add_argument("--encoder", choices=["plain", "lite0", "lite1", "lite2"], default="plain",
                    help="the pose encoder's trunk (lite*: ImageNet-pretrained)")
     s.add_argument("--size", type=positive_int, default=64, help="crop side in pixels")
-    s.add_argument("--detector-backbone", choices=["plain", "lite0", "lite1", "lite2"], default="plain")
+    s.add_argument("--detector-backbone", choices=DETECTOR_BACKBONES, default="plain")
     s.add_argument("--workers", type=positive_int, default=2, help="render processes")
     s.add_argument("--mesh-faces", type=nonnegative_int, default=SYNTH_FACES, metavar="N",
                    help=f"render the objects decimated to about N faces (default {SYNTH_FACES}; 0: the full meshes)")

@@ -8,7 +8,7 @@ import sys
 from tracker.cli.args import (add_precision, add_regressor_budget, fraction, nonnegative_int, positive_float,
                               positive_int)
 from tracker.cli.common import print_validation
-from tracker.core.defaults import LR_SCHEDULES
+from tracker.core.defaults import DETECTOR_BACKBONES, LR_SCHEDULES
 from tracker.runtime.signals import sigterm_as_ctrl_c
 
 
@@ -105,11 +105,12 @@ def add_train_detector(sub, REPO) -> None:
     s.add_argument("--ema", type=float, default=0.0, metavar="DECAY",
                    help="validate and export the exponential moving average of the weights with this decay "
                         "(e.g. 0.999: about the last 1,000 steps) instead of the last weights; 0: off")
-    s.add_argument("--backbone", choices=["plain", "lite0", "lite1", "lite2"], default="plain",
+    s.add_argument("--backbone", choices=DETECTOR_BACKBONES, default="plain",
                    help="plain: the small convolutional backbone from random weights; lite0-2: an ImageNet-pretrained "
-                        "EfficientNet-Lite trunk (BatchNorm frozen) under the same neck and heads")
+                        "EfficientNet-Lite trunk (BatchNorm frozen) under the same neck and heads; nanodet: NanoDet's "
+                        "COCO-pretrained trunk and neck (tracker/training/pretrained/NOTICE.md) under full-width heads")
     s.add_argument("--no-pretrained", action="store_true",
-                   help="with --backbone lite*: the same network from random weights, BatchNorm learning (the control)")
+                   help="with --backbone lite* or nanodet: the same network from random weights (the control)")
     s.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto",
                    help="where the detector trains: a CUDA GPU where torch sees one (auto), or the CPU")
     add_precision(s)

@@ -11,3 +11,7 @@ LR_SCHEDULES = ("budget", "plateau")
 
 # the arithmetic of the training passes (--precision; tracker.training.nets.precision)
 PRECISIONS = ("auto", "bf16", "fp32")
+
+# the detector's backbones (train-detector --backbone, build --detector-backbone):
+# tracker.training.nets.detector.make_detector
+DETECTOR_BACKBONES = ("plain", "lite0", "lite1", "lite2", "nanodet")

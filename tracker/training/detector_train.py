@@ -480,7 +480,7 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
         raise UserError(f"--boxes must be one of {', '.join(BOX_KINDS)}, not '{box_kind}'")
     if colour not in COLOUR_AUGS:
         raise UserError(f"--colour must be one of {', '.join(COLOUR_AUGS)}, not '{colour}'")
-    from tracker.training.nets.detector import BACKBONES, IMAGENET_MEAN_STD
+    from tracker.training.nets.detector import BACKBONES, COCO_MEAN_STD, IMAGENET_MEAN_STD
     if backbone not in BACKBONES:
         raise UserError(f"--backbone must be one of {', '.join(BACKBONES)}, not '{backbone}'")
     if backbone != "plain" and init_from and Path(init_from).is_dir():
@@ -514,7 +514,7 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     precision = prec.resolve(precision, device)
     spec = DetectorSpec(classes=bundle.manifest.obj_ids, input_w=input_w, input_h=input_h, boxes=box_kind)
     if backbone != "plain":
-        spec.mean, spec.std = IMAGENET_MEAN_STD
+        spec.mean, spec.std = COCO_MEAN_STD if backbone == "nanodet" else IMAGENET_MEAN_STD
     root = Path(bundle_dir)
     work = work_dir(root)
     work.mkdir(parents=True, exist_ok=True)

@@ -11,6 +11,8 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from tracker.core.defaults import DETECTOR_BACKBONES
+
 
 def cbr(cin, cout, stride=1, k=3):
     return nn.Sequential(nn.Conv2d(cin, cout, k, stride, k // 2, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True))
@@ -83,6 +85,32 @@ class CenterNetPretrained(nn.Module):
     forward = CenterNetLite.forward
 
 
+class CenterNetCoco(nn.Module):
+    """The same kind of heads on NanoDet's COCO-pretrained trunk and PAN neck
+    (:mod:`tracker.training.nets.nanodet`; its BatchNorms are folded into its convolutions, so
+    the whole trunk trains): the neck's stride-8 map (128 channels, already merged with strides
+    16 and 32) under two full-width heads (two 3x3 convolutions of 128 channels each). Takes RGB
+    in 0..1 (the detector spec's mean 0, std 1: :data:`COCO_MEAN_STD`). ``pretrained`` False:
+    the same network from random weights (the control)."""
+
+    def __init__(self, n_classes: int, pretrained: bool = True):
+        super().__init__()
+        from tracker.training.nets.nanodet import NECK_CHANNELS, NanoDet, nanodet_coco
+        self.n_classes = n_classes
+        self.trunk = nanodet_coco().train() if pretrained else NanoDet()
+        self.trunk.coco_head = None
+        c = NECK_CHANNELS
+        self.head_hm = nn.Sequential(cbr(c, c), cbr(c, c), nn.Conv2d(c, n_classes, 1))
+        self.head_box = nn.Sequential(cbr(c, c), cbr(c, c), nn.Conv2d(c, 4, 1))
+        nn.init.constant_(self.head_hm[-1].bias, -math.log((1 - 0.01) / 0.01))
+
+    def forward_logits(self, x):
+        p8 = self.trunk.features(x)[0]
+        return self.head_hm(p8), self.head_box(p8)
+
+    forward = CenterNetLite.forward
+
+
 class Logits(nn.Module):
     """A detector's training outputs (heatmap logits, box maps) as its ``forward``: the module
     that DistributedDataParallel wraps (it synchronises gradients of ``forward`` calls only)."""
@@ -96,14 +124,18 @@ class Logits(nn.Module):
 
 
 IMAGENET_MEAN_STD = (127.0 / 255.0, 128.0 / 255.0)  # the pretrained trunks' (255 x - 127) / 128
-BACKBONES = ("plain", "lite0", "lite1", "lite2")
+COCO_MEAN_STD = (0.0, 1.0)  # NanoDet's: RGB / 255
+BACKBONES = DETECTOR_BACKBONES
 
 
 def make_detector(n_classes: int, width: int = 32, backbone: str = "plain", pretrained: bool = True) -> nn.Module:
     """``plain``: :class:`CenterNetLite` from random weights; ``lite0``..``lite2``:
-    :class:`CenterNetPretrained` on that trunk (ImageNet weights unless ``pretrained`` is False)."""
+    :class:`CenterNetPretrained` on that trunk (ImageNet weights unless ``pretrained`` is False);
+    ``nanodet``: :class:`CenterNetCoco` (COCO weights unless ``pretrained`` is False)."""
     if backbone == "plain":
         return CenterNetLite(n_classes, width)
+    if backbone == "nanodet":
+        return CenterNetCoco(n_classes, pretrained)
     return CenterNetPretrained(n_classes, width, backbone, pretrained)
 
 
