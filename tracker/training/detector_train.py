@@ -581,7 +581,8 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     if ema and averaged is None:  # a new run (a resumed one shares its recipe, so its checkpoint holds the average)
         averaged = {k: v.detach().float().clone() for k, v in model.state_dict().items() if v.is_floating_point()}
     budget = 60.0 * minutes
-    log(f"detector ({backbone}{', ImageNet weights' if backbone != 'plain' and pretrained else ''}): "
+    weights = {"plain": "", "nanodet": ", COCO weights"}.get(backbone, ", ImageNet weights") if pretrained else ""
+    log(f"detector ({backbone}{weights}): "
         f"{n_params / 1e6:.2f} M parameters, {len(tr)} train / {len(va)} validation images, "
         f"{input_w}x{input_h} input, budget {f'{max_steps} steps' if max_steps is not None else f'{minutes:.0f} min'}, "
         f"{precision} training passes on {device}")
