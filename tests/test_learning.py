@@ -635,7 +635,7 @@ def test_training_runs_under_torchrun_with_two_processes(tiny_bundle, tmp_path):
                         "--data", str(tiny_bundle.parent / "split"), "--out", str(out), "--size", "32", "--latent", "16",
                         "--minutes", "0.05", "--reg-epochs", "1", "--batch", "8",
                         "--models-info", str(REPO / "models" / "lmo_models_info.json"), "--device", "cpu"],
-                       capture_output=True, text=True, timeout=600, env=env, cwd=REPO)
+                       capture_output=True, text=True, timeout=240, env=env, cwd=REPO)
     assert r.returncode == 0, _failure(r.stderr)
     from tracker.core.bundle import open_bundle
     m = open_bundle(out).manifest
@@ -658,7 +658,7 @@ def test_the_detector_trains_under_torchrun_with_two_processes(tiny_bundle, tmp_
     r = subprocess.run([str(torchrun), "--standalone", "--nproc_per_node", "2", str(REPO / "app.py"),
                         "train-detector", "--data", str(tiny_bundle.parent / "split"), "--model", str(root),
                         "--minutes", "0.05", "--batch", "2", "--width", "8", "--input", "128", "96", "--device", "cpu"],
-                       capture_output=True, text=True, timeout=600, env=env, cwd=REPO)
+                       capture_output=True, text=True, timeout=240, env=env, cwd=REPO)
     assert r.returncode == 0, _failure(r.stderr)
     from tracker.core.bundle import open_bundle
     from tracker.runtime.detector import Detector

@@ -97,7 +97,7 @@ def test_the_conversion_reads_a_manifest_and_writes_the_same_npz_twice(tmp_path)
         assert sorted(z.files) == ["k", "p/perm"] and np.array_equal(z["k"], w["k"])
 
 
-def test_a_detector_trains_on_the_coco_trunk_and_exports(tiny_bundle, tmp_path):
+def test_a_detector_trains_on_the_coco_trunk_and_exports(tiny_bundle, tmp_path, monkeypatch):
     """A tiny run of train-detector --backbone nanodet: the COCO trunk and neck under our heads,
     input RGB / 255, ONNX export within 1e-4 (checked by train_detector), the trunk's weights
     moved from COCO's, and the run-time detector decodes its output."""
@@ -106,10 +106,15 @@ def test_a_detector_trains_on_the_coco_trunk_and_exports(tiny_bundle, tmp_path):
     from tracker.runtime.detector import Detector
     from tracker.training.detector_train import train_detector
     from tracker.training.nets.detector import COCO_MEAN_STD, CenterNetCoco
+    from tracker.training.nets import nanodet
+    loads = []
+    real = nanodet.load_weights
+    monkeypatch.setattr(nanodet, "load_weights", lambda net, path=WEIGHTS: loads.append(path) or real(net, path))
     root = tmp_path / "lmo"
     shutil.copytree(tiny_bundle, root)
     d = train_detector(tiny_bundle.parent / "split", root, max_steps=2, batch=2, input_w=128, input_h=96,
                        backbone="nanodet", log=lambda *a: None)
+    assert loads == [WEIGHTS]  # the run started from the COCO weights
     assert (d["mean"], d["std"]) == COCO_MEAN_STD and d["training"]["backbone"] == "nanodet"
     assert d["training"]["pretrained"] and d["training"]["onnx_max_abs_diff"] <= 1e-4
     out = Detector(open_bundle(root))(np.full((480, 640, 3), 120, np.uint8))
@@ -117,3 +122,21 @@ def test_a_detector_trains_on_the_coco_trunk_and_exports(tiny_bundle, tmp_path):
     coco, control = CenterNetCoco(8), CenterNetCoco(8, pretrained=False)
     w = "backbone.stem.0.weight"
     assert not torch.equal(coco.trunk.state_dict()[w], control.trunk.state_dict()[w])  # COCO's, not random
+
+
+def test_missing_or_altered_weights_are_one_line_errors(tmp_path, monkeypatch):
+    from tracker.core.errors import UserError
+    from tracker.training.nets import nanodet
+    with pytest.raises(UserError, match="weights are missing"):
+        load_weights(NanoDet(), tmp_path / "none.npz")
+    altered = tmp_path / "nanodet_coco.npz"
+    data = bytearray(WEIGHTS.read_bytes())
+    data[len(data) // 2] ^= 0xFF  # one byte of one weight changed
+    altered.write_bytes(bytes(data))
+    monkeypatch.setattr(nanodet, "WEIGHTS", altered)
+    with pytest.raises(UserError, match="does not match its SHA-256"):
+        load_weights(NanoDet(), altered)
+    garbled = tmp_path / "garbled.npz"
+    garbled.write_bytes(b"not a zip")
+    with pytest.raises(UserError, match="not a readable weights file"):
+        load_weights(NanoDet(), garbled)

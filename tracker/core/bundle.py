@@ -107,9 +107,17 @@ def staged_bundle(src_root, out):
         shutil.rmtree(stage, ignore_errors=True)
         raise
     old = stage.with_name(stage.name + ".old")
-    if out.exists():
-        out.rename(old)
-    stage.rename(out)
+    moved = False
+    try:  # two renames: a signal between them puts the old bundle back
+        if out.exists():
+            out.rename(old)
+            moved = True
+        stage.rename(out)
+    except BaseException:
+        if moved and not out.exists():
+            old.rename(out)
+        shutil.rmtree(stage, ignore_errors=True)
+        raise
     shutil.rmtree(old, ignore_errors=True)
 
 

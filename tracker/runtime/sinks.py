@@ -133,8 +133,10 @@ class WebViewer:
 
     def __init__(self, port: int):
         self.port = port
+        # its own session: a Ctrl-C in the terminal reaches the run, which decides when the viewer
+        # stops (it keeps serving through --serve-for or the next Ctrl-C), not the child itself
         self._proc = subprocess.Popen([sys.executable, "-c", self._CHILD, str(port)], stdin=subprocess.PIPE,
-                                      stdout=subprocess.PIPE, text=True)
+                                      stdout=subprocess.PIPE, text=True, start_new_session=True)
         said = self._proc.stdout.readline().strip()  # once the server listens (or failed)
         if said != "ready":
             self.stop()
@@ -194,7 +196,8 @@ class RerunSink:
         import rerun as rr
         bp = blueprint(names, overlay)
         self.rr = rr
-        self.rec = rr.RecordingStream("autopose")
+        import uuid
+        self.rec = rr.RecordingStream("autopose", recording_id=uuid.uuid4())  # rerun's default id is per process
         try:
             self._connect(out_dir, bp)
         except BaseException:
@@ -306,7 +309,10 @@ class RerunSink:
         """The run is over: a saved recording is complete on disk. A serving sink keeps its
         servers up (and the recording open) until :meth:`hold` ends."""
         if self.serving:
-            self.rec.flush(timeout_sec=10.0)
+            try:
+                self.rec.flush(timeout_sec=10.0)
+            except Exception as e:  # a viewer that stopped reading: the run's own files are written anyway
+                print(f"warning: the rerun recording could not be flushed to its viewers ({e})", file=sys.stderr)
         else:
             self.stop()
 

@@ -414,7 +414,7 @@ def recipe_from_manifest(bundle_dir, log=None) -> Recipe:
     if not isinstance(rec, dict):
         raise UserError(f"{bundle_dir}: its manifest records no build recipe (it was not made by 'app.py build')")
     rec = dict(rec)
-    if not rec.get("names") and b.manifest.extra.get("object_names"):
+    if b.manifest.extra.get("object_names"):  # renamed after its build: the names it has now
         rec["names"] = {str(o.id): o.name for o in b.manifest.objects}
     det = b.manifest.detector or {}
     if det.get("provenance") and log is not None:

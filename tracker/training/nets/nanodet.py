@@ -167,11 +167,27 @@ def tf_convs(net: NanoDet) -> list[tuple[str, Conv]]:
     return [(names[m], m) for m in convs]
 
 
+WEIGHTS_SHA256 = "8263addd62acb6b6faa19c8b11a4ab59569b687f2062e44dba3d864f823b805d"  # as NOTICE.md says
+
+
 def load_weights(net: NanoDet, path: str | Path = WEIGHTS) -> NanoDet:
     """Copy the npz's float16 weights (as float32) into ``net`` by their TF names; every shape checked,
-    every tensor of the file used (the head's only when ``net`` has the COCO head)."""
-    with np.load(path, allow_pickle=False) as z:
-        weights = {k: z[k] for k in z.files}
+    every tensor of the file used (the head's only when ``net`` has the COCO head). The shipped file
+    is checked against its SHA-256 first: a missing or altered one is a one-line error."""
+    import hashlib
+    import zipfile
+    from tracker.core.errors import UserError
+    path = Path(path)
+    again = "restore it with git checkout, or make it again with scripts/nanodet_weights.py"
+    if not path.is_file():
+        raise UserError(f"{path}: the COCO-pretrained NanoDet weights are missing; {again}")
+    if path.resolve() == WEIGHTS.resolve() and hashlib.sha256(path.read_bytes()).hexdigest() != WEIGHTS_SHA256:
+        raise UserError(f"{path}: does not match its SHA-256 (altered or corrupt); {again}")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            weights = {k: z[k] for k in z.files}
+    except (OSError, ValueError, zipfile.BadZipFile) as e:
+        raise UserError(f"{path}: not a readable weights file ({e}); {again}") from None
     used = {"PartitionedCall/PadV2/constant_values"}     # the max-pool's -inf padding: MaxPool2d pads -inf
     with torch.no_grad():
         for k, (name, conv) in enumerate(tf_convs(net)):
