@@ -2,7 +2,8 @@
 (``scripts/nanodet_weights.py`` -> ``tracker/training/pretrained/nanodet_coco.npz``, NOTICE.md there).
 
 Read off the TFJS graph (``models/nanodet.json``) and checked against the reference ONNX
-(``tests/test_nanodet.py``). Input: RGB in 0..1, NCHW, sides multiples of 32 (416x416 as trained).
+(``tests/test_nanodet.py``). Input: RGB in 0..1, NCHW, 416x416 as trained; other sizes work (each upsampling resizes to the
+map it is added to), e.g. the detector's 320x240.
 
 - Every convolution has a bias and no BatchNorm: the shipped graph has BatchNorm folded into the
   convolution biases, so there are no BatchNorm statistics to freeze; nothing here changes in train().
