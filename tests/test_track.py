@@ -77,8 +77,9 @@ class FakeCapture:
     the test lets it (``gate``, a semaphore that may be shared by several plugs), so that how
     far the camera runs ahead of the pipeline is set by the test, not by the machine's load."""
 
-    def __init__(self, n=60, gate=None, shape=(48, 64, 3)):
+    def __init__(self, n=60, gate=None, shape=(48, 64, 3), gate_timeout=WAIT_S):
         self.n, self.i, self.reads, self.released = n, 0, 0, 0
+        self.gate_timeout = gate_timeout  # None: a read waits for the test however long it takes
         self.gate = gate if gate is not None else threading.Semaphore(0)
         self.shape = shape
 
@@ -95,7 +96,7 @@ class FakeCapture:
         self.reads += 1
         if self.i >= self.n:
             return False, None  # unplugged
-        if not self.gate.acquire(timeout=WAIT_S):
+        if not self.gate.acquire(timeout=self.gate_timeout):
             return False, None  # the test stopped asking for frames
         f = np.full(self.shape, self.i % 256, np.uint8)
         self.i += 1
@@ -266,7 +267,8 @@ def _fake_cameras(monkeypatch, gate=None):
     opened = []
 
     def fake_open(src, max_frames=None, **kw):
-        cam = CameraSource(0, capture=FakeCapture(n=10 ** 6, gate=gate, shape=(480, 640, 3)), max_frames=max_frames,
+        cap = FakeCapture(n=10 ** 6, gate=gate, shape=(480, 640, 3), gate_timeout=None)  # (a daemon thread reads)
+        cam = CameraSource(0, capture=cap, max_frames=max_frames,
                            timeout_s=WAIT_S, reconnect_s=0, close_timeout_s=0)
         opened.append(cam)
         return cam
