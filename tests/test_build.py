@@ -94,6 +94,8 @@ def test_recipes_recorded_before_decimated_renders_keep_the_full_meshes():
     assert bb.Recipe.from_dict({**old, "mesh_faces": 4000}).mesh_faces == 4000
     assert bb.Recipe(models="m").mesh_faces == 4000
     assert bb.Recipe.from_dict(old).head_sets == 1 and bb.Recipe(models="m").head_sets == 3  # one set before stop 51
+    # the COCO-pretrained detector since stop 57; a recipe recorded before it keeps the plain one
+    assert bb.Recipe.from_dict(old).detector_backbone == "plain" and bb.Recipe(models="m").detector_backbone == "nanodet"
 
 
 def test_build_makes_a_bundle_resumes_and_records_its_recipe(small, tmp_path, monkeypatch):
