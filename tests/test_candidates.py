@@ -61,3 +61,14 @@ def test_a_wrong_top_box_loses_to_the_right_second_one(data_dir):
     # without the group the two boxes give two poses, the wrong one first
     both = est.estimate(img, K, [Detection(9, wrong, 0.9), Detection(9, right, 0.5)])
     assert len(both) == 2 and both[0].score < p.score == pytest.approx(both[1].score)
+
+
+def test_eval_takes_the_candidates_and_records_them(data_dir, tmp_path):
+    from tracker.evaluation.evaluate import evaluate
+    kw = dict(boxes="detector", max_frames=2, progress=False)
+    one = evaluate(REPO / "models" / "lmo", data_dir / "lmo" / "dev", tmp_path / "1.json", **kw)
+    three = evaluate(REPO / "models" / "lmo", data_dir / "lmo" / "dev", tmp_path / "3.json", candidates_per_object=3,
+                     candidate_floor=0.05, **kw)
+    assert one["detection"]["candidates"] == {"per_object": 1, "floor": 0.05}  # the bundle's: off
+    assert three["detection"]["candidates"] == {"per_object": 3, "floor": 0.05}
+    assert three["n_est"] == one["n_est"]  # one pose per object either way: the most confident of its boxes

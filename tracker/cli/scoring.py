@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import sys
 
-from tracker.cli.args import positive_int
+from tracker.cli.args import fraction, positive_int
 
 
 def add_eval(sub, REPO) -> None:
@@ -25,13 +25,19 @@ def add_eval(sub, REPO) -> None:
     s.add_argument("--per-instance", metavar="FILE",
                    help="also write a CSV with one row per ground-truth instance: its errors and pass/fail at "
                         "every threshold (the input of 'app.py lab compare')")
+    s.add_argument("--candidates", type=positive_int, metavar="K",
+                   help="with --boxes detector: pose up to K detector boxes per object and keep the most confident "
+                        "(default: the bundle's detector spec, 1 for models/lmo)")
+    s.add_argument("--candidate-floor", type=fraction, metavar="S",
+                   help="with --candidates: the lowest score a further box may have (default: the spec's, 0.05)")
     s.set_defaults(func=cmd_eval)
 
 
 def cmd_eval(args) -> int:
     from tracker.evaluation.evaluate import evaluate
     m = evaluate(args.model, args.data, args.json, boxes=args.boxes, mode=args.mode, bop_csv=args.bop_csv,
-                 max_frames=args.max_frames, gt_models=args.gt_models, per_instance=args.per_instance)
+                 max_frames=args.max_frames, gt_models=args.gt_models, per_instance=args.per_instance,
+                 candidates_per_object=args.candidates, candidate_floor=args.candidate_floor)
     from tracker.evaluation.report import fmt_num
     print(f"{m['method']} on {m['n_gt']} instances ({m['boxes']} boxes): ADD(I) {fmt_num(m['add_recall'])}, "
           f"AR_MSSD {fmt_num(m['ar_mssd'])}, AR_MSPD {fmt_num(m['ar_mspd'])}, RE median {fmt_num(m['re_median_deg'], 1)} "

@@ -130,6 +130,7 @@ def evaluate(model_dir, scene_dir, json_path=None, boxes: str = "gt", mode: str 
                                       f"per object and {CANDIDATE_MAX} per image")
         m["detection"]["operating_point"] = detection_ap(all_dets, gts, est.obj_ids, ignore=ign)
         m["detection"]["ms_per_image_median"] = float(np.median(det_ms))
+        m["detection"]["candidates"] = {"per_object": detector.spec.candidates, "floor": detector.spec.candidate_floor}
         m["detection"]["visibility_source"] = m.get("visibility_source")
     if others:
         m["scored_obj_ids"] = sorted(ours & set(gt_ids))
