@@ -67,8 +67,8 @@ class BoxSchedule:
             self.since = 0
             self.detector_frames += 1
             dets = [d for d in self.detector(rgb) if self.obj_ids is None or d.obj_id in self.obj_ids]
-            self.n_expected = len(dets) - sum(1 for k, d in enumerate(dets)  # objects, not candidates
-                                              if d.group is not None and any(e.group == d.group for e in dets[:k]))
+            # objects, not candidates: one per group, one per detection without a group
+            self.n_expected = len({d.group for d in dets if d.group is not None}) + sum(d.group is None for d in dets)
             return dets, "detector"
         self.since += 1
         out = []

@@ -175,14 +175,14 @@ def load_weights(net: NanoDet, path: str | Path = WEIGHTS) -> NanoDet:
     """Copy the npz's float16 weights (as float32) into ``net`` by their TF names; every shape checked,
     every tensor of the file used (the head's only when ``net`` has the COCO head). The shipped file
     is checked against its SHA-256 first: a missing or altered one is a one-line error."""
-    import hashlib
     import zipfile
+    from tracker.core.bundle import sha256
     from tracker.core.errors import UserError
     path = Path(path)
     again = "restore it with git checkout, or make it again with scripts/nanodet_weights.py"
     if not path.is_file():
         raise UserError(f"{path}: the COCO-pretrained NanoDet weights are missing; {again}")
-    if path.resolve() == WEIGHTS.resolve() and hashlib.sha256(path.read_bytes()).hexdigest() != WEIGHTS_SHA256:
+    if path.resolve() == WEIGHTS.resolve() and sha256(path) != WEIGHTS_SHA256:
         raise UserError(f"{path}: does not match its SHA-256 (altered or corrupt); {again}")
     try:
         with np.load(path, allow_pickle=False) as z:
