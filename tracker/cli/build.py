@@ -41,7 +41,13 @@ def add_build(sub, REPO) -> None:
     s.add_argument("--detector-backbone", choices=DETECTOR_BACKBONES, default="nanodet",
                    help="the detector's trunk: nanodet (COCO-pretrained, default), plain (small, from random weights: "
                         "half the detection time, worse on real frames), lite0-2 (ImageNet-pretrained)")
-    s.add_argument("--workers", type=positive_int, default=2, help="render processes")
+    s.add_argument("--workers", type=positive_int,
+                   help="render processes (default 2); with --ray, the most training workers and render tasks at "
+                        "once (default: every CPU of the cluster, or every GPU for training)")
+    s.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS",
+                   help="render and train on a Ray cluster: no ADDRESS starts one on this machine for the build, "
+                        "'auto' or ray://HOST:PORT joins a running one (needs the 'cluster' extra: "
+                        "pip install -e '.[cluster]'; README, Building on a cluster)")
     s.add_argument("--mesh-faces", type=nonnegative_int, default=SYNTH_FACES, metavar="N",
                    help=f"render the objects decimated to about N faces (default {SYNTH_FACES}; 0: the full meshes)")
     s.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto",
@@ -69,10 +75,16 @@ def cmd_build(args) -> int:
             raise UserError("build needs --models DIR (a folder of meshes) or --from-manifest BUNDLE")
         recipe = Recipe(models=str(args.models), minutes=args.minutes, objects=args.objects, prior=args.prior,
                         units=args.units, seed=args.seed, encoder=args.encoder, size=args.size,
-                        detector_backbone=args.detector_backbone, workers=args.workers, device=args.device,
+                        detector_backbone=args.detector_backbone, workers=args.workers or 2, device=args.device,
                         mesh_faces=args.mesh_faces, head_sets=args.head_sets, max_images=args.max_images,
                         names=args.names)
-    s = build(recipe, args.out, log=lambda m: print(m, file=sys.stderr))
+    log = lambda m: print(m, file=sys.stderr)  # noqa: E731
+    if args.ray:
+        from tracker.training.cluster import RayCluster
+        with RayCluster(None if args.ray == "local" else args.ray, workers=args.workers, log=log) as cluster:
+            s = build(recipe, args.out, log=log, cluster=cluster)
+    else:
+        s = build(recipe, args.out, log=log)
     det = s["stages"].get("check", {}).get("detector", {})
     print(f"built {args.out} in {s['minutes']} min this run, {s['minutes_all_runs']} min over all its runs "
           f"(budget {s['budget_minutes']:g}): on held-out renders "

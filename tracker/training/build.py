@@ -211,8 +211,10 @@ def _key(*parts) -> str:
     return hashlib.sha1(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:12]
 
 
-def build(recipe: Recipe, out_dir, log=print) -> dict:
-    """Run (or resume) every stage; returns the report's summary."""
+def build(recipe: Recipe, out_dir, log=print, cluster=None) -> dict:
+    """Run (or resume) every stage; returns the report's summary. ``cluster``: a
+    :class:`tracker.training.cluster.RayCluster` (entered) that renders and trains instead of
+    this process (``build --ray``); the stages, their keys and the bundle are the same."""
     from tracker.core.paths import shared_data, work_dir
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
@@ -285,19 +287,24 @@ def build(recipe: Recipe, out_dir, log=print) -> dict:
     log(f"at most {p['max_images']:,} images per rendered split "
         f"({'--max-images' if recipe.max_images else 'what this machine can train on; --max-images N sets it'})")
 
-    def render(split: Path, n: int, seed: int, seconds: float | None = None, trains: bool = True, **opts):
+    def render(split: Path, n: int, seed: int, seconds: float | None = None, trains: bool = True, key: str = "",
+               **opts):
         def run():
-            shutil.rmtree(split, ignore_errors=True)  # a split left half-made by an interruption
             if trains:  # what training cut from the split before is stale
                 _forget(work_dir(out), ("crops_*.npz", "det_images_*.npz"), log)
             cfg = SynthConfig(models_dir=str(models_dir), backgrounds_dir=backgrounds, seed=seed, prior=recipe.prior,
                               obj_ids=list(obj_ids), mesh_faces=recipe.mesh_faces or None, **opts)
+            if cluster is not None:  # shards as tasks; those finished by an interrupted run are kept
+                return {**cluster.render(cfg, split, n, seconds, min(n, MIN_IMAGES), f"build stage {split.name}",
+                                         key), "executor": "ray"}
+            shutil.rmtree(split, ignore_errors=True)  # a split left half-made by an interruption
+            shutil.rmtree(split.with_name(split.name + ".shards"), ignore_errors=True)
             rep = generate(cfg, split, n, workers=recipe.workers, command=f"build stage {split.name}",
                            seconds=seconds, min_images=min(n, MIN_IMAGES))
             if rep.interrupted:
                 raise KeyboardInterrupt
             return {"images": rep.images, "images_per_s": round(rep.images_per_s, 2),
-                    "time_limited": rep.time_limited}
+                    "time_limited": rep.time_limited, "executor": "local"}
         return run
 
     split_enc, split_det = root / "split_encoder", root / "split_detector"
@@ -306,12 +313,12 @@ def build(recipe: Recipe, out_dir, log=print) -> dict:
     k_render = _key("render", k_models, p["render_images"], p["render_seconds"], recipe.seed, recipe.prior, obj_ids,
                     "repeat", *faces)
     stage(2, "render", k_render, render(split_enc, p["render_images"], recipe.seed, p["render_seconds"],
-                                        repeat_objects=True))
+                                        key=k_render, repeat_objects=True))
     det_opts = {"distractors": "hard", "lighting": "overhead", "repeat_objects": True}
     k_render_det = _key("render-det", k_models, p["render_det_images"], p["render_det_seconds"], recipe.seed,
                         recipe.prior, obj_ids, det_opts, *faces)
     stage(3, "render-det", k_render_det, render(split_det, p["render_det_images"], recipe.seed + 1,
-                                                p["render_det_seconds"], **det_opts))
+                                                p["render_det_seconds"], key=k_render_det, **det_opts))
     # a split that stopped at its image count (not its time) leaves the rest of its share
     p = share_out(p, recipe.minutes, leftover_seconds(p, state.d))
 
@@ -329,37 +336,49 @@ def build(recipe: Recipe, out_dir, log=print) -> dict:
                  p["encoder_minutes"], p["reg_minutes"], recipe.seed,
                  *([recipe.head_sets] if recipe.head_sets != 1 else []))
 
+    def trained(name: str, kwargs: dict, minutes: float) -> dict:
+        """``name``'s training function with ``kwargs``, here or on the cluster; how it ran."""
+        if cluster is None:
+            from tracker.training.cluster import TRAINING
+            import importlib
+            module, fn = TRAINING[name]
+            getattr(importlib.import_module(module), fn)(**kwargs, log=log)
+            return {"executor": "local"}
+        return {"executor": "ray", "training_workers": cluster.train(name, kwargs, work_dir(out), minutes)}
+
     def do_encoder():
-        from tracker.training.train import train_bundle
+        from tracker.core.bundle import open_bundle
         prev = state.d.get("encoder", {}).get("key")
         if prev and prev != k_enc:  # another recipe: its checkpoints must not be resumed
             _forget(work_dir(out), ("ae_checkpoint.pt", "ae_best.pt"), log)
-        m = train_bundle(joined(), out, method=recipe.method, size=recipe.size, latent=recipe.latent,
-                         minutes=p["encoder_minutes"], seed=recipe.seed, reg_minutes=p["reg_minutes"],
-                         stage_minutes=p["encoder_minutes"] + 3 * recipe.head_sets * p["reg_minutes"],
-                         head_sets=recipe.head_sets,
-                         models_info_path=models_dir / "models_info.json", log=log, encoder=recipe.encoder,
-                         device=recipe.device, command=f"app.py build --models {recipe.models} --out {out}")
-        v = m.validation_synthetic
-        return {"re_median_deg": v["regression"]["re_median_deg"], "te_median_mm": v["regression"]["te_median_mm"]}
+        minutes = p["encoder_minutes"] + 3 * recipe.head_sets * p["reg_minutes"]
+        how = trained("encoder", dict(
+            data_dir=joined(), out_dir=out, method=recipe.method, size=recipe.size, latent=recipe.latent,
+            minutes=p["encoder_minutes"], seed=recipe.seed, reg_minutes=p["reg_minutes"], stage_minutes=minutes,
+            head_sets=recipe.head_sets, models_info_path=models_dir / "models_info.json", encoder=recipe.encoder,
+            device=recipe.device, command=f"app.py build --models {recipe.models} --out {out}"), minutes)
+        v = _written(open_bundle, out, "encoder").manifest.validation_synthetic
+        return {"re_median_deg": v["regression"]["re_median_deg"], "te_median_mm": v["regression"]["te_median_mm"],
+                **how}
     stage(4, "encoder", k_enc, do_encoder)
 
     # 5. detector
     k_det = _key("detector", k_enc, k_render_det, p["detector_minutes"], recipe.detector_backbone, recipe.seed)
 
     def do_detector():
-        from tracker.training.detector_train import train_detector
+        from tracker.core.bundle import open_bundle
         prev = state.d.get("detector", {}).get("key")
         if prev and prev != k_det:  # another recipe or split: its checkpoint must not be resumed
             _forget(work_dir(out), ("detector_ckpt_*.pt",), log)
         n = int(state.d["render"]["images"]) + int(state.d["render-det"]["images"])  # a tiny budget: < a batch
-        d = train_detector(joined(), out, minutes=p["detector_minutes"], seed=recipe.seed, occlusion=0.5,
-                           stage_minutes=p["detector_minutes"],
-                           batch=min(32, max(2, n // 2)), lr=DETECTOR_LR.get(recipe.detector_backbone, 2e-3),
-                           backbone=recipe.detector_backbone, device=recipe.device, log=log,
-                           command=f"app.py build --models {recipe.models} --out {out}")
-        v = d["training"]["validation_synthetic"]
-        return {"ap": v["ap"], "ap50": v["ap50"]}
+        how = trained("detector", dict(
+            data_dir=joined(), bundle_dir=out, minutes=p["detector_minutes"], seed=recipe.seed, occlusion=0.5,
+            stage_minutes=p["detector_minutes"], batch=min(32, max(2, n // 2)),
+            lr=DETECTOR_LR.get(recipe.detector_backbone, 2e-3), backbone=recipe.detector_backbone,
+            device=recipe.device, command=f"app.py build --models {recipe.models} --out {out}"),
+            p["detector_minutes"])
+        v = (_written(open_bundle, out, "detector").manifest.detector or {})["training"]["validation_synthetic"]
+        return {"ap": v["ap"], "ap50": v["ap50"], **how}
     stage(5, "detector", k_det, do_detector)
 
     # 6. held-out check on fresh renders
@@ -368,8 +387,8 @@ def build(recipe: Recipe, out_dir, log=print) -> dict:
 
     def do_check():
         from tracker.evaluation.evaluate import evaluate
-        render(split_check, CHECK_IMAGES, recipe.seed + 1000, trains=False)()
-        res = {}
+        how = render(split_check, CHECK_IMAGES, recipe.seed + 1000, trains=False, key=k_check)()
+        res = {k: how[k] for k in ("executor", "render_tasks") if k in how}
         for boxes in ("gt", "detector"):
             m = evaluate(out, split_check / "000000", root / f"check_{boxes}.json", boxes=boxes,
                          bop_csv=root / f"check_{boxes}.csv", progress=False)
@@ -405,8 +424,31 @@ def _record_recipe(out: Path, root: Path, recipe: Recipe, planned: dict, stages:
     def change(manifest, folder):
         write_build_report(folder, root, stages, recipe, planned, stages["models"]["objects"])
         manifest.extra["build"] = {"recipe": asdict(recipe), "plan": planned, "versions": versions(),
-                                   "stage_seconds": {k: v.get("seconds") for k, v in stages.items()}}
+                                   "stage_seconds": {k: v.get("seconds") for k, v in stages.items()},
+                                   **executor_record(stages)}
     update_manifest(out, change)
+
+
+def executor_record(stages: dict) -> dict:
+    """How the stages that render or train ran: ``executor`` local, ray (``build --ray``) or
+    mixed (a build resumed the other way), the render tasks of the cluster's render stages and
+    its most training workers."""
+    ran = {k: v.get("executor", "local") for k, v in stages.items()
+           if k in ("render", "render-det", "encoder", "detector", "check")}
+    kinds = set(ran.values())
+    return {"executor": kinds.pop() if len(kinds) == 1 else "mixed", "executor_by_stage": ran,
+            "render_tasks": sum(int(v.get("render_tasks", 0)) for v in stages.values()),
+            "training_workers": max([int(v.get("training_workers", 0)) for v in stages.values()] + [0])}
+
+
+def _written(open_bundle, out: Path, stage: str):
+    """The bundle the training stage wrote (verified); on a cluster whose first training worker
+    ran on another machine without the work folder shared, it is not here: said in one line."""
+    try:
+        return open_bundle(out)
+    except UserError as e:
+        raise UserError(f"after the {stage} stage: {e} (with --ray on several machines, --out must be on a "
+                        f"file system every machine shares)") from None
 
 
 def recipe_from_manifest(bundle_dir, log=None) -> Recipe:
