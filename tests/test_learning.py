@@ -669,6 +669,33 @@ def test_the_detector_trains_under_torchrun_with_two_processes(tiny_bundle, tmp_
     assert isinstance(Detector(b)(np.full((480, 640, 3), 120, np.uint8)), list)
 
 
+def test_processes_whose_time_budgets_differ_stop_together(tiny_bundle, tmp_path):
+    """Each process cuts its budget from its own clock (build's stage budget less what its
+    loading took), so under DDP they differ; all must stop at the same step, or the one that
+    goes on waits in the gradient exchange for ever (build --ray hung so). Here the second
+    process is given a budget 2.5 times the first's."""
+    import os
+    import shutil
+    import subprocess
+    import sys
+    script = tmp_path / "ranks.py"
+    script.write_text("import os, sys\n"
+                      "from tracker.training.detector_train import train_detector\n"
+                      "rank = int(os.environ['RANK'])\n"
+                      "train_detector(sys.argv[1], sys.argv[2], minutes=0.02 + 0.03 * rank, batch=2, width=8,\n"
+                      "               input_w=128, input_h=96, device='cpu', threads=1, log=print)\n")
+    root = tmp_path / "lmo"
+    shutil.copytree(tiny_bundle, root)
+    torchrun = Path(sys.executable).parent / "torchrun"
+    r = subprocess.run([str(torchrun), "--standalone", "--nproc_per_node", "2", str(script),
+                        str(tiny_bundle.parent / "split"), str(root)], capture_output=True, text=True, timeout=150,
+                       env=dict(os.environ, OMP_NUM_THREADS="1"), cwd=REPO)
+    assert r.returncode == 0, _failure(r.stderr)
+    from tracker.core.bundle import open_bundle
+    t = open_bundle(root).manifest.detector["training"]
+    assert t["processes"] == 2 and t["steps"] >= 1
+
+
 def test_a_split_whose_meshes_are_gone_is_refused_before_training(tiny_split, tmp_path):
     split = tmp_path / "split"
     shutil.copytree(tiny_split, split)

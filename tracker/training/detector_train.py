@@ -580,6 +580,10 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
         log(f"started from the weights of {init_from}; new optimiser, schedule and budget")
     if ema and averaged is None:  # a new run (a resumed one shares its recipe, so its checkpoint holds the average)
         averaged = {k: v.detach().float().clone() for k, v in model.state_dict().items() if v.is_floating_point()}
+    # one budget on every process: each cut its own from what its loading took, and one that
+    # stops a step before another leaves that one waiting in DDP's gradient exchange for ever
+    # (seen under build --ray: two workers idle at the budget's last step)
+    minutes = dd.max_over_ranks(minutes)
     budget = 60.0 * minutes
     weights = {"plain": "", "nanodet": ", COCO weights"}.get(backbone, ", ImageNet weights") if pretrained else ""
     log(f"detector ({backbone}{weights}): "

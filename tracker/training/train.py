@@ -400,6 +400,7 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
         exact_cached = crops_cache_path(work, data_dir, size, seed, max_images, False).is_file()
         minutes = training_minutes(stage_minutes, minutes, (time.perf_counter() - t0) / 60, len(cs),
                                    reg_minutes, exact_cached, head_sets)
+        minutes = dd.max_over_ranks(minutes)  # one budget (and step-size schedule) on every process
     model = AutoEncoder(method, size, latent, n_obj, encoder=encoder, pretrained=pretrained)
     n_params = sum(p.numel() for p in model.parameters())
     log(f"{method}: {n_params / 1e6:.2f} M parameters, {len(tr)} train / {len(va)} validation crops, "
