@@ -159,9 +159,11 @@ class RayCluster:
             import logging
             os.environ.setdefault("RAY_TRAIN_ENABLE_PRINT_PATCH", "0")  # workers' prints once, not twice
             try:
+                # the workers' Python logging at ERROR: without the dashboard (not in the extra) Ray
+                # Train's placement-group cleaner warns every few seconds that it cannot ask for state
                 ray.init(address=self.address, num_cpus=self.num_cpus if self.address is None else None,
                          include_dashboard=False, logging_level=logging.WARNING, log_to_driver=True,
-                         configure_logging=True)
+                         logging_config=ray.LoggingConfig(log_level="ERROR"))
             except ConnectionError as e:
                 raise UserError(f"--ray {self.address}: no Ray cluster there ({str(e).splitlines()[0]}); "
                                 f"start one with 'ray start --head', or give no address for a local one") from None
