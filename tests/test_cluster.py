@@ -30,6 +30,17 @@ def test_without_the_extra_the_command_line_says_so_in_one_line(monkeypatch, tmp
     assert not (tmp_path / "out").exists()  # nothing rendered or written first
 
 
+def test_without_ray_nothing_imports_it():
+    """build's modules, the cluster module and the command line load without Ray: it is
+    imported only when --ray is given (a fresh interpreter: this one may hold it)."""
+    import subprocess
+    code = ("import sys; import tracker.training.build, tracker.training.cluster; from tracker.cli.main import "
+            "build_parser; build_parser().parse_args(['build', '--models', 'm', '--out', 'o']); "
+            "print('ray' in sys.modules)")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and r.stdout.strip() == "False", r.stderr
+
+
 def test_shards_are_two_per_cpu_and_bounded_in_size():
     assert cl.shard_count(8, 2) == 4
     assert cl.shard_count(3, 2) == 3  # never more than the images
