@@ -331,6 +331,21 @@ def test_overhead_lighting_changes_the_object_pixels_not_the_scenes(data_dir, tm
     assert diff[on].mean() > 5 * max(diff[~on].mean(), 0.5)
 
 
+def test_colour_jitter_off_keeps_the_objects_colours_and_the_scenes(data_dir, tmp_path):
+    for s in (0.15, 0.0):
+        generate(_cfg(data_dir, seed=5, p_table=0.0, colour_jitter=s), tmp_path / str(s), 2, workers=1, progress=False)
+    a, b = tmp_path / "0.15" / "000000", tmp_path / "0.0" / "000000"
+    for name in ("scene_gt.json", "scene_gt_info.json", "clean_crops.json"):  # the same draws: the same scenes
+        assert filecmp.cmp(a / name, b / name, shallow=False), name
+    ia, ib = (cv2.imread(str(d / "rgb" / "000000.jpg")).astype(int) for d in (a, b))
+    masks = sorted((a / "mask_visib").glob("000000_*.png"))
+    on = np.any([cv2.imread(str(m), cv2.IMREAD_GRAYSCALE) > 0 for m in masks], axis=0)
+    diff = np.abs(ia - ib).sum(axis=2)
+    assert diff[on].mean() > 5 * max(diff[~on].mean(), 0.5)  # only the objects changed
+    with pytest.raises(UserError, match="--colour-jitter"):
+        generate(_cfg(data_dir, colour_jitter=-0.1), tmp_path / "bad", 1, workers=1, progress=False)
+
+
 def test_overhead_key_light_shines_down_and_dominates():
     from tracker.training.synth.randomise import sample_overhead_lights
     down = np.array([0.0, 0.6, 0.8])  # a camera looking down at the table at about 53 degrees

@@ -77,6 +77,10 @@ class SynthConfig:
     # of the matte default (real plastic and ceramic show highlights that vertex colours lack);
     # drawn from their own random stream, so 0 reproduces the images of before byte for byte
     p_gloss: float = 0.0
+    # the per-channel gain range of each object's colour jitter in the image (randomise.jitter_colours,
+    # with a saturation change); 0: the objects' own colours (the real ones have fixed colours), the
+    # same scenes otherwise
+    colour_jitter: float = 0.15
     # "plain": 12 primitives with noisy random colours, 0-5 per image (data made before);
     # "hard": 36 primitives textured from the background photos, 2-8 per image, tinted per
     # image, half the time with a target's colour (real clutter: yellow cups, white boxes);
@@ -239,7 +243,7 @@ def render_one(index: int, out_root: str) -> dict:
     labels = scene.render_labels(K, inst)
     for k, vis in enumerate(scene_visibility(scene, crop_r, K, inst, _W["hull"], n_t, labels, keep_rgb=True)):
         oid, R, t = inst[k]
-        jitter_colours(rgb, vis.mask_visib, vis.bbox_visib, rng)
+        jitter_colours(rgb, vis.mask_visib, vis.bbox_visib, rng, cfg.colour_jitter)
         win = vis.window
         cv2.imwrite(str(root / "clean" / f"{im_id:06d}_{k:06d}.png"),
                     cv2.cvtColor(vis.alone_rgb, cv2.COLOR_RGB2BGR))
@@ -445,6 +449,8 @@ def generate(cfg: SynthConfig, out_dir, n_images: int, workers: int = 2, batch: 
         raise UserError(f"--p-table must be between 0 and 1, got {cfg.p_table}")
     if not 0.0 <= cfg.p_gloss <= 1.0:
         raise UserError(f"--gloss must be between 0 and 1, got {cfg.p_gloss}")
+    if not 0.0 <= cfg.colour_jitter < 1.0:
+        raise UserError(f"--colour-jitter must be at least 0 and below 1, got {cfg.colour_jitter}")
     if cfg.distractors not in DISTRACTOR_STYLES:
         raise UserError(f"unknown distractor style '{cfg.distractors}' (choose from {', '.join(DISTRACTOR_STYLES)})")
     if cfg.lighting not in LIGHTING_STYLES:
