@@ -105,6 +105,10 @@ def _images(split: Path) -> dict:
     return {"files": files, "gt": gt}
 
 
+def work_of(out: Path) -> Path:
+    return out.parent / (out.name + ".work") / "build"
+
+
 def _build(tmp_path, log):
     recipe = bb.Recipe(models=str(_mesh(tmp_path)), minutes=0.05, workers=1, size=32, latent=16, head_sets=1)
     out = tmp_path / "models" / "mine"
@@ -120,8 +124,11 @@ def test_build_on_a_local_ray_cluster_renders_in_tasks_and_trains_with_two_worke
     b = open_bundle(out)  # verified: every file hashed
     assert b.manifest.has_detector and b.manifest.obj_ids == [1]
     rec = b.manifest.extra["build"]
-    # 8 + 8 + 4 images on 2 CPUs: 4 + 4 + 4 shards; both networks trained by 2 gloo workers
-    assert rec["executor"] == "ray" and rec["training_workers"] == 2 and rec["render_tasks"] == 12
+    # 8 + 8 images on 2 CPUs: 4 + 4 shards, the 4 held-out images in 1 (one scene for eval);
+    # both networks trained by 2 gloo workers
+    assert rec["executor"] == "ray" and rec["training_workers"] == 2 and rec["render_tasks"] == 9
+    assert len(list((work_of(out) / "split_check").iterdir())) == 2  # one scene and its synth_config.json
+    assert s["stages"]["check"]["detector"]["per_object"]["1"]["n_gt"] >= 2  # more than the first shard's image was scored
     assert set(rec["executor_by_stage"].values()) == {"ray"}
     assert s["stages"]["encoder"]["training_workers"] == s["stages"]["detector"]["training_workers"] == 2
     work = tmp_path / "models" / "mine.work" / "build"

@@ -289,6 +289,8 @@ def build(recipe: Recipe, out_dir, log=print, cluster=None) -> dict:
 
     def render(split: Path, n: int, seed: int, seconds: float | None = None, trains: bool = True, key: str = "",
                **opts):
+        """A render stage's work; ``trains`` False: the held-out check's split, one scene (on a
+        cluster one task: its 40 images are seconds of work, and ``evaluate`` reads one scene)."""
         def run():
             if trains:  # what training cut from the split before is stale
                 _forget(work_dir(out), ("crops_*.npz", "det_images_*.npz"), log)
@@ -296,7 +298,7 @@ def build(recipe: Recipe, out_dir, log=print, cluster=None) -> dict:
                               obj_ids=list(obj_ids), mesh_faces=recipe.mesh_faces or None, **opts)
             if cluster is not None:  # shards as tasks; those finished by an interrupted run are kept
                 return {**cluster.render(cfg, split, n, seconds, min(n, MIN_IMAGES), f"build stage {split.name}",
-                                         key), "executor": "ray"}
+                                         key, tasks=None if trains else 1), "executor": "ray"}
             shutil.rmtree(split, ignore_errors=True)  # a split left half-made by an interruption
             shutil.rmtree(split.with_name(split.name + ".shards"), ignore_errors=True)
             rep = generate(cfg, split, n, workers=recipe.workers, command=f"build stage {split.name}",

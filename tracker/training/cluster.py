@@ -190,14 +190,16 @@ class RayCluster:
     # ------------------------------------------------------------------ rendering
 
     def render(self, cfg, split: Path, n_images: int, seconds: float | None, min_images: int,
-               command: str, key: str) -> dict:
+               command: str, key: str, tasks: int | None = None) -> dict:
         """Render ``n_images`` of ``cfg`` into ``split`` as shards on the cluster; returns the
-        stage's record. Shards finished by an earlier run of the same ``key`` are kept."""
+        stage's record. Shards finished by an earlier run of the same ``key`` are kept. Each
+        shard is a scene of the joined split; ``tasks`` 1: one task, one scene (what ``eval``
+        reads), else :func:`shard_count`."""
         from tracker.training.synth.engine import STALL_S
         from tracker.training.synth.join import join_splits
         ray = self.ray
         shards_dir = split.with_name(split.name + ".shards")
-        tasks = shard_count(n_images, self.slots())
+        tasks = tasks or shard_count(n_images, self.slots())
         plan = {"key": key, "images": n_images, "tasks": tasks}
         plan_file = shards_dir / "plan.json"
         if not (plan_file.is_file() and json.loads(plan_file.read_text()) == plan):
