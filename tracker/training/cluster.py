@@ -158,6 +158,8 @@ class RayCluster:
         if not ray.is_initialized():
             import logging
             os.environ.setdefault("RAY_TRAIN_ENABLE_PRINT_PATCH", "0")  # workers' prints once, not twice
+            if self.address is None:  # a cluster of this build's own: its workers at the build's priority
+                os.environ.setdefault("RAY_worker_niceness", "0")  # (Ray's default, 15, starved them here)
             try:
                 # the workers' Python logging at ERROR: without the dashboard (not in the extra) Ray
                 # Train's placement-group cleaner warns every few seconds that it cannot ask for state
@@ -244,8 +246,7 @@ class RayCluster:
                 k = running.pop(ref)
                 try:
                     data = ray.get(ref)
-                except (ray.exceptions.RayTaskError, ray.exceptions.WorkerCrashedError,
-                        ray.exceptions.NodeDiedError, ray.exceptions.TaskCancelledError) as e:
+                except ray.exceptions.RayError as e:  # the task's own error, its process or node lost
                     cause = getattr(e, "cause", None)
                     if isinstance(cause, UserError):
                         raise UserError(str(cause)) from None
