@@ -331,6 +331,17 @@ def test_overhead_lighting_changes_the_object_pixels_not_the_scenes(data_dir, tm
     assert diff[on].mean() > 5 * max(diff[~on].mean(), 0.5)
 
 
+def test_camera_effects_off_keeps_the_scenes(data_dir, tmp_path):
+    for on in (True, False):
+        generate(_cfg(data_dir, seed=5, p_table=0.0, camera_effects=on), tmp_path / str(on), 2, workers=1,
+                 progress=False)
+    a, b = tmp_path / "True" / "000000", tmp_path / "False" / "000000"
+    for name in ("scene_gt.json", "scene_gt_info.json", "clean_crops.json"):
+        assert filecmp.cmp(a / name, b / name, shallow=False), name
+    ia, ib = (cv2.imread(str(d / "rgb" / "000000.jpg")).astype(int) for d in (a, b))
+    assert np.abs(ia - ib).mean() > 3  # the whole frame's colours and sharpness changed
+
+
 def test_colour_jitter_off_keeps_the_objects_colours_and_the_scenes(data_dir, tmp_path):
     for s in (0.15, 0.0):
         generate(_cfg(data_dir, seed=5, p_table=0.0, colour_jitter=s), tmp_path / str(s), 2, workers=1, progress=False)

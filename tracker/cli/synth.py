@@ -30,6 +30,9 @@ def add_synth(sub, REPO) -> None:
     s.add_argument("--colour-jitter", type=float, default=0.15, metavar="S",
                    help="each object's colours scaled per channel by 1 +- S, and its saturation changed "
                         "(default 0.15; 0: the objects' own colours, the same scenes)")
+    s.add_argument("--no-camera-effects", dest="camera_effects", action="store_false",
+                   help="no exposure, contrast, saturation, white balance, blur or sensor noise (on by default; "
+                        "the same scenes either way)")
     s.add_argument("--distractors", choices=["plain", "hard", "household"], default="plain",
                    help="plain: 0-5 random primitives per image (as data made before); hard: 2-8 primitives "
                         "textured from the photos and tinted, half the time with the targets' colours; "
@@ -66,6 +69,7 @@ def cmd_synth(args) -> int:
                       seed=args.seed, prior=args.prior, obj_ids=obj_ids, depth=args.depth,
                       mesh_faces=DEFAULT_MESH_FACES if args.mesh_faces is None else (args.mesh_faces or None),
                       p_table=args.p_table, p_gloss=args.gloss, colour_jitter=args.colour_jitter,
+                      camera_effects=args.camera_effects,
                       distractors=args.distractors,
                       lighting=args.lighting, repeat_objects=args.repeat_objects)
     rep = generate(cfg, args.out, args.images, workers=args.workers, command="app.py " + " ".join(sys.argv[1:]),

@@ -81,6 +81,9 @@ class SynthConfig:
     # with a saturation change); 0: the objects' own colours (the real ones have fixed colours), the
     # same scenes otherwise
     colour_jitter: float = 0.15
+    # exposure, contrast, saturation, white balance, blur and sensor noise on every image
+    # (randomise.camera_effects); False: none of them (JPEG quality drawn as before), the same scenes
+    camera_effects: bool = True
     # "plain": 12 primitives with noisy random colours, 0-5 per image (data made before);
     # "hard": 36 primitives textured from the background photos, 2-8 per image, tinted per
     # image, half the time with a target's colour (real clutter: yellow cups, white boxes);
@@ -258,7 +261,8 @@ def render_one(index: int, out_root: str) -> dict:
     if table is not None and cfg.p_table > 0 and rng.random() < cfg.p_table:  # 0: the draws of before
         bg = _table_background(bg, rng, cfg, inst, n_on_table, table, lights[0][0])
     img = composite(bg, rgb, depth > 0)
-    img = camera_effects(img, rng)
+    shot = camera_effects(img, rng)  # drawn either way: the same scenes with and without
+    img = shot if cfg.camera_effects else img
     q = int(rng.integers(cfg.jpeg_quality[0], cfg.jpeg_quality[1] + 1))
     cv2.imwrite(str(root / "rgb" / f"{im_id:06d}.jpg"), cv2.cvtColor(img, cv2.COLOR_RGB2BGR),
                 [cv2.IMWRITE_JPEG_QUALITY, q])
