@@ -327,8 +327,9 @@ def sample_materials(renderer, obj_ids, p_gloss: float, rng: np.random.Generator
 def jitter_colours(rgb: np.ndarray, mask: np.ndarray, box, rng: np.random.Generator,
                    strength: float = 0.15) -> None:
     """Material / vertex-colour jitter of one object in image space: per-channel gain and
-    a saturation change inside ``mask`` (in place); ``strength`` 0: none (the same draws). ``box``: the mask's (x, y, w, h) as
-    ``visibility.mask_box`` gives it (w <= 0 when empty); only that part of the frame is touched."""
+    a saturation change inside ``mask`` (in place); ``strength`` 0: none (the same draws).
+    ``box``: the mask's (x, y, w, h) as ``visibility.mask_box`` gives it (w <= 0 when empty);
+    only that part of the frame is touched."""
     x, y, w, h = (int(v) for v in box)
     if w <= 0 or h <= 0:
         return
@@ -336,7 +337,8 @@ def jitter_colours(rgb: np.ndarray, mask: np.ndarray, box, rng: np.random.Genera
     if strength <= 0:  # the objects' own colours; drawn all the same, so the scenes that follow stay
         return
     sub, m = rgb[y:y + h, x:x + w], mask[y:y + h, x:x + w]
-    px = sub[m].astype(np.float32) * gain
+    px = sub[m].astype(np.float32)
+    px *= gain  # in place: float32, as the images of before
     grey = px.mean(axis=1, keepdims=True)
     px = grey + (px - grey) * saturation
     sub[m] = np.clip(px, 0, 255).astype(np.uint8)
