@@ -70,11 +70,11 @@ from tracker.core.bundle import open_bundle  # noqa: E402
 
 @pytest.fixture(scope="module")
 def local_ray():
-    """One local Ray cluster of 2 CPUs for this module's tests (a RayCluster uses a connection it
-    finds and leaves it open)."""
-    ray.init(num_cpus=2, include_dashboard=False, logging_level="WARNING")
-    yield
-    ray.shutdown()
+    """One local Ray cluster of 2 CPUs for this module's tests, started as `build --ray` starts
+    its own (the RayClusters of the tests find it connected and leave it open)."""
+    with cl.RayCluster(num_cpus=2, log=lambda m: None) as c:
+        assert c.started and c.cpus == 2
+        yield
 
 
 @pytest.fixture()
