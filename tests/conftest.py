@@ -88,3 +88,24 @@ def tiny_bundle(tmp_path_factory, data_dir):
     train_bundle(root / "split", root / "lmo", method="cvam", size=32, latent=16, max_steps=20, reg_epochs=20,
                  models_info_path=REPO / "models" / "lmo_models_info.json", log=lambda *a: None)
     return root / "lmo"
+
+
+FIXTURE_MESHES = Path(__file__).parent / "fixtures" / "models"
+
+
+@pytest.fixture()
+def small(monkeypatch):
+    """``build`` with tiny splits: plan() gives MIN_IMAGES (8) for a budget this small."""
+    from tracker.training import build as bb
+    monkeypatch.setattr(bb, "MIN_IMAGES", 8)
+    monkeypatch.setattr(bb, "CHECK_IMAGES", 4)
+    monkeypatch.setattr(bb, "MAX_RATE", 0.01)
+
+
+def fixture_meshes(tmp_path, names=("obj_000001.ply", "obj_000002.ply")) -> Path:
+    """A folder ``tmp_path/meshes`` holding copies of the named fixture meshes."""
+    src = tmp_path / "meshes"
+    src.mkdir()
+    for f in names:
+        shutil.copy(FIXTURE_MESHES / f, src / f)
+    return src

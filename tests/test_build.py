@@ -12,24 +12,11 @@ pytest.importorskip("torch")
 from tracker.training import build as bb  # noqa: E402
 from tracker.core.bundle import open_bundle  # noqa: E402
 from tracker.core.errors import UserError  # noqa: E402
-from tests.conftest import FakeClock  # noqa: E402
+from tests.conftest import FakeClock, fixture_meshes as _meshes  # noqa: E402
 
 FIX = Path(__file__).parent / "fixtures" / "models"
 
 
-@pytest.fixture()
-def small(monkeypatch):
-    monkeypatch.setattr(bb, "MIN_IMAGES", 8)
-    monkeypatch.setattr(bb, "CHECK_IMAGES", 4)
-    monkeypatch.setattr(bb, "MAX_RATE", 0.01)  # plan() gives MIN_IMAGES for a budget this small
-
-
-def _meshes(tmp_path):
-    src = tmp_path / "meshes"
-    src.mkdir()
-    for f in ("obj_000001.ply", "obj_000002.ply"):
-        shutil.copy(FIX / f, src / f)
-    return src
 
 
 def test_the_budget_is_split_by_the_documented_rule():

@@ -66,6 +66,7 @@ ray = pytest.importorskip("ray")
 pytest.importorskip("torch")
 from tracker.training import build as bb  # noqa: E402
 from tracker.core.bundle import open_bundle  # noqa: E402
+from tests.conftest import fixture_meshes  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -77,18 +78,8 @@ def local_ray():
         yield
 
 
-@pytest.fixture()
-def small(monkeypatch):
-    monkeypatch.setattr(bb, "MIN_IMAGES", 8)
-    monkeypatch.setattr(bb, "CHECK_IMAGES", 4)
-    monkeypatch.setattr(bb, "MAX_RATE", 0.01)  # plan() gives MIN_IMAGES for a budget this small
-
-
 def _mesh(tmp_path):
-    src = tmp_path / "meshes"
-    src.mkdir()
-    shutil.copy(FIX / "obj_000001.ply", src / "obj_000001.ply")
-    return src
+    return fixture_meshes(tmp_path, ("obj_000001.ply",))
 
 
 def _images(split: Path) -> dict:

@@ -28,6 +28,7 @@ SIGTERM) cancels this build's tasks; leaving Ray ends the cluster's work that th
 """
 from __future__ import annotations
 
+import hashlib
 import io
 import json
 import math
@@ -151,7 +152,6 @@ class RayCluster:
         self.ray = require_ray()
         self.address, self.cap, self.num_cpus, self.log = address, workers, num_cpus, log
         self.started = False
-        self.used = {"render_tasks": 0, "training_workers": 0}
 
     def __enter__(self) -> "RayCluster":
         ray = self.ray
@@ -185,10 +185,6 @@ class RayCluster:
     def slots(self) -> int:
         return max(1, min(self.cpus, self.cap or self.cpus))
 
-    def record(self) -> dict:
-        """What the manifest's build record says of how the bundle was made."""
-        return {"executor": "ray", "address": self.address or "local", **self.used}
-
     # ------------------------------------------------------------------ rendering
 
     def render(self, cfg, split: Path, n_images: int, seconds: float | None, min_images: int,
@@ -213,7 +209,6 @@ class RayCluster:
             self.log(f"{split.name}: {tasks - len(todo)} of {tasks} shards done before")
         models_dir, backgrounds_dir = Path(cfg.models_dir).resolve(), Path(cfg.backgrounds_dir).resolve()
         assets = _assets(models_dir, backgrounds_dir)
-        import hashlib
         assets_ref = ray.put(assets)
         assets_key = hashlib.sha256(assets).hexdigest()[:16]
         deadline = None if seconds is None else time.time() + seconds
@@ -266,7 +261,6 @@ class RayCluster:
         else:
             join_splits(split, parts, command=command)
         images = sum(int(m.get("images_written", m.get("images", 0))) for m in metas)
-        self.used["render_tasks"] += tasks
         return {"images": images, "images_per_s": round(images / max(dt, 1e-9), 2),
                 "time_limited": any(m.get("time_limited", False) for m in metas), "render_tasks": tasks}
 
@@ -318,5 +312,4 @@ class RayCluster:
                             f"its checkpoints are kept, rerun the same command to resume") from None
         if error_file.is_file():
             raise UserError(error_file.read_text())
-        self.used["training_workers"] = max(self.used["training_workers"], n)
         return n
