@@ -37,6 +37,10 @@ def add_synth(sub, REPO) -> None:
                    help="plain: 0-5 random primitives per image (as data made before); hard: 2-8 primitives "
                         "textured from the photos and tinted, half the time with the targets' colours; "
                         "household: as hard, half of the shapes mugs, cups and bottles")
+    s.add_argument("--occluders", metavar="DIR",
+                   help="folder of household meshes (.ply/.obj, mm, vertex colours; scripts/debian_assets.py "
+                        "furniture): distractors and occluders drawn from it in their own colours, as many as "
+                        "--distractors draws (default: the style's shapes)")
     s.add_argument("--lighting", choices=["camera", "overhead"], default="camera",
                    help="camera: 1-3 lights from the camera's side (as data made before); overhead: a strong "
                         "key light from above the table, a weak fill, little ambient (bright tops, dark sides)")
@@ -70,7 +74,7 @@ def cmd_synth(args) -> int:
                       mesh_faces=DEFAULT_MESH_FACES if args.mesh_faces is None else (args.mesh_faces or None),
                       p_table=args.p_table, p_gloss=args.gloss, colour_jitter=args.colour_jitter,
                       camera_effects=args.camera_effects,
-                      distractors=args.distractors,
+                      distractors=args.distractors, occluders_dir=args.occluders,
                       lighting=args.lighting, repeat_objects=args.repeat_objects)
     rep = generate(cfg, args.out, args.images, workers=args.workers, command="app.py " + " ".join(sys.argv[1:]),
                    shard=args.shard)

@@ -36,7 +36,7 @@ from tracker.core.errors import UserError
 from tracker.core.visibility import scene_visibility
 from tracker.core import priors
 from tracker.training.synth.randomise import (Backgrounds, camera_effects, cast_shadows, composite, distractor_meshes, household_meshes,
-                        jitter_colours, target_palette, texture_from_photos, tint_distractors,
+                        list_occluders, occluder_meshes, jitter_colours, target_palette, texture_from_photos, tint_distractors,
                         list_backgrounds, sample_lights, sample_materials, sample_overhead_lights,
                         table_surface)
 
@@ -89,6 +89,11 @@ class SynthConfig:
     # image, half the time with a target's colour (real clutter: yellow cups, white boxes);
     # "household": as "hard", with 18 of the 36 shapes mugs, cups and bottles
     distractors: str = "plain"
+    # a folder of household meshes (.ply/.obj, mm, vertex colours; scripts/debian_assets.py
+    # furniture): the distractors and occluders are drawn from it instead of the style's shapes,
+    # in their own colours (neither textured from the photos nor tinted), as many per image as
+    # the style draws; None: the style's shapes
+    occluders_dir: str | None = None
     # "camera": 1-3 lights from the camera's side, ambient 0.15-0.5 (data made before);
     # "overhead": a strong key light from above the table, a weak fill, little ambient, drawn
     # from their own random stream (same scenes as "camera" with the same seed, other light)
@@ -143,8 +148,12 @@ def _init_worker(cfg_dict: dict, models: dict | None = None):
         models = load_models(cfg.models_dir, cfg.obj_ids)
     photo = cfg.distractors in PHOTO_DISTRACTORS
     n_primitives, n_household = DISTRACTOR_SETS[cfg.distractors]
-    dis = distractor_meshes(np.random.default_rng([cfg.seed, 7]), n_primitives) + \
-        household_meshes(np.random.default_rng([cfg.seed, 10]), n_household)
+    if cfg.occluders_dir:
+        dis = occluder_meshes(list_occluders(cfg.occluders_dir), np.random.default_rng([cfg.seed, 11]))
+        photo = False
+    else:
+        dis = distractor_meshes(np.random.default_rng([cfg.seed, 7]), n_primitives) + \
+            household_meshes(np.random.default_rng([cfg.seed, 10]), n_household)
     bgs = Backgrounds(list_backgrounds(cfg.backgrounds_dir))
     if photo:
         texture_from_photos(dis, bgs.images, np.random.default_rng([cfg.seed, 8]))
@@ -170,6 +179,7 @@ def _init_worker(cfg_dict: dict, models: dict | None = None):
         shadow_verts={k: v[:: max(1, len(v) // SHADOW_POINTS)] for k, v in verts.items()},
         radius={k: d / 2 for k, (_, d) in hulls.items()},
         n_dis=len(dis),
+        tint=photo,
         scene=Renderer(cfg.width, cfg.height, meshes),
         crop=Renderer(cfg.crop_size, cfg.crop_size, targets),
         bgs=bgs,
@@ -232,7 +242,7 @@ def render_one(index: int, out_root: str) -> dict:
         lights, ambient = sample_overhead_lights(np.random.default_rng([cfg.seed, index, 3]), down_c)
     if cfg.p_gloss > 0:
         sample_materials(scene, _W["obj_ids"], cfg.p_gloss, np.random.default_rng([cfg.seed, index, 1]))
-    if cfg.distractors in PHOTO_DISTRACTORS:
+    if _W["tint"]:
         tint_distractors(scene, [DISTRACTOR_BASE + i for i in range(_W["n_dis"])], _W["palette"],
                          np.random.default_rng([cfg.seed, index, 2]))
     scene.set_lights(lights)
@@ -460,6 +470,9 @@ def generate(cfg: SynthConfig, out_dir, n_images: int, workers: int = 2, batch: 
     if cfg.lighting not in LIGHTING_STYLES:
         raise UserError(f"unknown lighting '{cfg.lighting}' (choose from {', '.join(LIGHTING_STYLES)})")
     list_backgrounds(cfg.backgrounds_dir)  # fail early, in the parent
+    if cfg.occluders_dir:
+        list_occluders(cfg.occluders_dir)
+        cfg.occluders_dir = str(Path(cfg.occluders_dir).resolve())
     from tracker.core.meshes import load_models
     models = load_models(cfg.models_dir, cfg.obj_ids)  # fail early (and warn once) on bad meshes
     if cfg.mesh_faces:  # here, once (a missing library is one error, not a broken pool); workers read the cache

@@ -219,6 +219,42 @@ def household_meshes(rng: np.random.Generator, n: int = 18) -> list[trimesh.Trim
     return out
 
 
+MESH_EXTS = (".ply", ".obj", ".glb", ".stl")
+
+
+def list_occluders(folder) -> list[Path]:
+    """The mesh files of an occluder folder (``synth --occluders``), sorted."""
+    d = Path(folder)
+    if not d.is_dir():
+        raise UserError(f"occluders folder not found: {d}")
+    files = sorted(p for p in d.iterdir() if p.suffix.lower() in MESH_EXTS)
+    if not files:
+        raise UserError(f"{d}: no .ply/.obj/.glb/.stl meshes (scripts/debian_assets.py furniture makes some)")
+    return files
+
+
+def occluder_meshes(files: list[Path], rng: np.random.Generator, n: int = 48,
+                    size_mm: tuple[float, float] = (40.0, 250.0)) -> list[trimesh.Trimesh]:
+    """``n`` of the meshes (all, if fewer), each centred and scaled to a largest side drawn
+    from ``size_mm`` (household things on a table), in their own vertex colours (grey where a
+    file has none). A file that is not a mesh is one error naming it."""
+    pick = rng.permutation(len(files))[:n]
+    out = []
+    for i in sorted(int(k) for k in pick):
+        try:
+            m = trimesh.load(files[i], force="mesh", process=False)
+        except Exception as e:  # noqa: BLE001 - any reader error: the file is not a mesh
+            raise UserError(f"{files[i]}: not a readable mesh ({type(e).__name__})") from None
+        if not isinstance(m, trimesh.Trimesh) or len(m.faces) == 0:
+            raise UserError(f"{files[i]}: no triangles")
+        if m.visual.kind != "vertex":
+            m.visual = trimesh.visual.ColorVisuals(m, vertex_colors=np.full((len(m.vertices), 4), 180, np.uint8))
+        m.apply_translation(-m.bounds.mean(0))
+        m.apply_scale(rng.uniform(*size_mm) / max(float(m.extents.max()), 1e-9))
+        out.append(m)
+    return out
+
+
 def texture_from_photos(meshes: list[trimesh.Trimesh], photos: list[np.ndarray], rng: np.random.Generator) -> None:
     """Replace each mesh's vertex colours by a patch of a photo projected along a random axis,
     brightened towards white: printed boxes, mugs, cables and books rather than flat primitives.
