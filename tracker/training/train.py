@@ -10,6 +10,7 @@ import sys
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from tracker.core.bop import load_models_info, symmetry_rotations
@@ -83,6 +84,10 @@ def choose_knn(Xtr, ytr, Xva, size_va, centre_va_t, t_va, K_va, log=print):
                                                                         "val_te_median_mm": best[0]}
 
 
+# a frozen front (encoder 'nanodet'): augmented versions of each crop whose outputs are cached, and
+# the size of the reconstruction (a 128-pixel input reconstructed at 64: the decoder's cost a quarter)
+FROZEN_AUGMENTATIONS = 3
+FROZEN_RECON_SIZE = 64
 MLP_EPOCHS = 300  # the regressors' epochs when a time budget (reg_minutes) ends them
 
 
@@ -346,13 +351,16 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
     torch = require_torch()
     from tracker.training.crops import CropSet, build_training_crops, crops_cache_path, train_val_split
     from tracker.core.meshes import load_models
-    from tracker.training.nets.autoencoder import ENCODERS, METHODS, AutoEncoder
-    from tracker.training.nets.fit import encode_all, onehot, to_tensor, train_autoencoder
+    from tracker.training.nets.autoencoder import ENCODERS, FROZEN, METHODS, PRETRAINED, AutoEncoder
+    from tracker.training.nets.fit import (CachedInputs, cache_frozen_outputs, encode_all, onehot, to_tensor,
+                                           train_autoencoder)
     from tracker.training.nets.precision import resolve, resolve_device
     if method not in METHODS:
         raise UserError(f"unknown method '{method}' (choose from {', '.join(METHODS)})")
     if encoder not in ENCODERS:
         raise UserError(f"unknown encoder '{encoder}' (choose from {', '.join(ENCODERS)})")
+    if encoder in PRETRAINED + FROZEN and size % 32:
+        raise UserError(f"--encoder {encoder} takes crops a multiple of 32 pixels a side (e.g. --size 128), not {size}")
     from tracker.training.nets import distributed as dd
     device = resolve_device(device)
     rank, n_proc = dd.init_from_env(device)  # under torchrun: several processes train the autoencoder
@@ -401,12 +409,23 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
         minutes = training_minutes(stage_minutes, minutes, (time.perf_counter() - t0) / 60, len(cs),
                                    reg_minutes, exact_cached, head_sets)
         minutes = dd.max_over_ranks(minutes)  # one budget (and step-size schedule) on every process
-    model = AutoEncoder(method, size, latent, n_obj, encoder=encoder, pretrained=pretrained)
+    frozen_front = encoder in FROZEN
+    recon = min(size, FROZEN_RECON_SIZE) if frozen_front else size
+    model = AutoEncoder(method, size, latent, n_obj, encoder=encoder, pretrained=pretrained, recon_size=recon)
     n_params = sum(p.numel() for p in model.parameters())
     log(f"{method}: {n_params / 1e6:.2f} M parameters, {len(tr)} train / {len(va)} validation crops, "
         f"{n_obj} objects, budget {f'{max_steps} steps' if max_steps is not None else f'{minutes:.0f} min'}, "
         f"{precision} training passes")
-    hist = train_autoencoder(model, cs.x[tr], cs.y[tr], c_all[tr], cs.x[va], cs.y[va], c_all[va], work,
+    x_in, y_out = cs.x, cs.y
+    if frozen_front:  # the frozen front's outputs cached once (the first process), the targets at the decoder's size
+        key = crops_cache_path(work, data_dir, size, seed, max_images, True).stem
+        path = work / f"frozen_{encoder}_aug{FROZEN_AUGMENTATIONS}_{key}.npy"
+        x_in = dd.first_then_rest(lambda: CachedInputs(path) if path.is_file() else cache_frozen_outputs(
+            model.encoder.frozen, cs.x, path, n_aug=FROZEN_AUGMENTATIONS, seed=seed, log=log))
+        if recon != size:
+            y_out = np.stack([cv2.resize(im, (recon, recon), interpolation=cv2.INTER_AREA) for im in cs.y])
+    hist = train_autoencoder(model, x_in.subset(tr) if frozen_front else x_in[tr], y_out[tr], c_all[tr],
+                             x_in.subset(va) if frozen_front else x_in[va], y_out[va], c_all[va], work,
                              minutes=minutes, seed=seed, init_from=init_from, precision=precision, log=log,
                              lr=lr, batch=batch, device=device, kl_warmup=kl_warmup, lr_schedule=lr_schedule,
                              max_steps=max_steps)
@@ -482,6 +501,8 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
                       else "none",
                       **({"processes": n_proc} if n_proc > 1 else {}),
                       **({"pretrained": pretrained} if encoder not in ("plain", "resnet") else {}),
+                      **({"frozen_front": "stem..stage3 (stride 16)", "frozen_augmentations": FROZEN_AUGMENTATIONS,
+                          "recon_size": recon} if frozen_front else {}),
                       **({"init_from": str(init_from)} if init_from else {}), "onnx_max_abs_diff": diff},
             validation_synthetic=val,
             heads={"rotation_frame": head.rotation_frame, "distance": dist_info["head"],

@@ -11,7 +11,11 @@ strided 1x1 shortcut, the ResNet-style encoder of CVML-18 at CPU width; for cvam
 goes into every block), or ``lite0``/``lite1``/``lite2``: an ImageNet-pretrained
 EfficientNet-Lite trunk (:mod:`tracker.training.nets.backbone`, BatchNorm frozen), a 1x1 conv to
 128 channels and the latent layers (for cvam the label joins there: the pretrained layers
-take images only). Every conv of encoder and decoder is followed by BatchNorm (``norm``, on
+take images only). ``nanodet``: the COCO-pretrained NanoDet backbone
+(:mod:`tracker.training.nets.nanodet`, pretrained for detection): its stem and stages 1-3
+(through stride 16) frozen, so their outputs can be cached per crop
+(:class:`tracker.training.nets.fit.CachedInputs`), stage 4 trained, then the same 1x1 conv and
+latent layers. Every conv of encoder and decoder is followed by BatchNorm (``norm``, on
 by default; export folds it into the conv) and SiLU, nearest-neighbour upsampling + conv
 decoder (no transposed convolutions). Without the BatchNorm, training from scratch sat for
 ~500 steps at the per-object mean image (validation L2 ~330 on a two-object build; a plain
@@ -27,7 +31,8 @@ from torch.nn import functional as F
 
 METHODS = ("dalsr", "cvml", "cvam")
 PRETRAINED = ("lite0", "lite1", "lite2")
-ENCODERS = ("plain", "resnet") + PRETRAINED
+FROZEN = ("nanodet",)  # a frozen front whose outputs training caches
+ENCODERS = ("plain", "resnet") + PRETRAINED + FROZEN
 TRUNK_REDUCED = 128  # channels of the pretrained trunk's features after the 1x1 conv
 
 
@@ -70,8 +75,18 @@ class Encoder(nn.Module):
         if arch not in ENCODERS:
             raise ValueError(f"unknown encoder {arch}")
         self.size, self.latent, self.n_cond, self.variational = size, latent, n_cond, variational
-        self.trunk = None
-        if arch in PRETRAINED:
+        self.trunk = self.frozen = None
+        if arch in FROZEN:
+            from tracker.training.nets.nanodet import NanoDet, load_weights
+            if size % 32:
+                raise ValueError(f"the NanoDet trunk needs a crop size that is a multiple of 32, not {size}")
+            bb = (load_weights(NanoDet(coco_head=False)) if pretrained else NanoDet(coco_head=False)).backbone
+            self.frozen = nn.Sequential(bb.stem, bb.stage1, bb.stage2, bb.stage3).requires_grad_(False)
+            self.trunk = bb.stage4
+            self.reduce = nn.Conv2d(512, TRUNK_REDUCED, 1)
+            self.convs = nn.ModuleList()
+            self.feat, cin = size // 32, TRUNK_REDUCED
+        elif arch in PRETRAINED:
             from tracker.training.nets.backbone import FEATURES, LiteTrunk
             if size % 32:
                 raise ValueError(f"a pretrained trunk needs a crop size that is a multiple of 32, not {size}")
@@ -92,6 +107,9 @@ class Encoder(nn.Module):
         self.logvar = nn.Linear(flat + n_cond, latent) if variational else None
 
     def features(self, x, c=None):
+        """x: RGB crops (B, 3, S, S), or for a frozen front its outputs (cached) to go on from."""
+        if self.frozen is not None and x.shape[1] == 3:
+            x = self.frozen(x)
         if self.trunk is not None:
             x = F.silu(self.reduce(self.trunk(x)))
         for layer in self.convs:
@@ -135,7 +153,9 @@ class Decoder(nn.Module):
 
 class AutoEncoder(nn.Module):
     def __init__(self, method="cvam", size=64, latent=128, n_objects=1, widths=(32, 64, 128, 256),
-                 encoder: str = "plain", pretrained: bool = True, norm: bool = True):
+                 encoder: str = "plain", pretrained: bool = True, norm: bool = True, recon_size: int | None = None):
+        """``recon_size``: the decoder's output size (default ``size``): a 128-pixel input can be
+        reconstructed at 64 pixels, the decoder's cost a quarter."""
         super().__init__()
         if method not in METHODS:
             raise ValueError(f"unknown method {method}")
@@ -144,7 +164,7 @@ class AutoEncoder(nn.Module):
         variational = method in ("cvml", "cvam")
         self.encoder = Encoder(size, latent, widths, n_cond, variational, arch=encoder, pretrained=pretrained,
                                norm=norm)
-        self.decoder = Decoder(size, latent, tuple(reversed(widths)), n_cond, norm=norm)
+        self.decoder = Decoder(recon_size or size, latent, tuple(reversed(widths)), n_cond, norm=norm)
         self.n_cond = n_cond
 
     def forward(self, x, c=None):

@@ -76,6 +76,75 @@ def augment(x: torch.Tensor, g: torch.Generator, p: float = 0.3) -> torch.Tensor
     return x
 
 
+class CachedInputs:
+    """A frozen front's outputs for every crop (the encoder's ``frozen`` part), float16 in a
+    memory-mapped .npy of shape (1 + A, N, C, h, w): version 0 from the crop as cut, versions
+    1..A from the crop under ``augment`` (drawn once, when cached). Training takes a random
+    augmented version of each crop per step, validation and encoding version 0: the frozen part
+    then costs nothing per step (no forward, no backward). ``rows``: the crops of a subset."""
+
+    def __init__(self, path, rows=None):
+        self.path = Path(path)
+        self.arr = np.load(self.path, mmap_mode="r")
+        self.rows = np.arange(self.arr.shape[1]) if rows is None else np.asarray(rows)
+
+    def __len__(self) -> int:
+        return len(self.rows)
+
+    @property
+    def versions(self) -> int:
+        return self.arr.shape[0]
+
+    def subset(self, rows) -> "CachedInputs":
+        return CachedInputs(self.path, self.rows[np.asarray(rows)])
+
+    def batch(self, idx, g: torch.Generator | None = None) -> torch.Tensor:
+        """Crops ``idx`` (of this subset): version 0, or with ``g`` a random augmented one each."""
+        rows = self.rows[np.asarray(idx)]
+        if g is None or self.versions == 1:
+            out = self.arr[0, rows]
+        else:
+            ver = 1 + torch.randint(self.versions - 1, (len(rows),), generator=g).numpy()
+            out = np.stack([self.arr[v, r] for v, r in zip(ver, rows)])
+        return torch.from_numpy(np.asarray(out, dtype=np.float32))
+
+
+@torch.no_grad()
+def cache_frozen_outputs(frozen: torch.nn.Module, x_u8: np.ndarray, path, n_aug: int = 3, seed: int = 0,
+                         batch: int = 256, log=print) -> CachedInputs:
+    """Run ``frozen`` over every crop (as cut, then ``n_aug`` augmented versions) into ``path``
+    (written whole: a half-written cache is never read)."""
+    from tracker.core.files import write_whole
+    frozen.eval()
+    g = torch.Generator().manual_seed(seed + 7919)
+    probe = frozen(to_tensor(x_u8[:1]))
+    shape = (1 + n_aug, len(x_u8)) + tuple(probe.shape[1:])
+    t0 = time.perf_counter()
+
+    def fill(tmp):
+        arr = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.float16, shape=shape)
+        for v in range(1 + n_aug):
+            for i in range(0, len(x_u8), batch):
+                x = to_tensor(x_u8[i:i + batch])
+                arr[v, i:i + len(x)] = frozen(augment(x, g) if v else x).numpy().astype(np.float16)
+        arr.flush()
+        del arr
+
+    write_whole(Path(path), fill)
+    log(f"cached the frozen front's outputs {shape[2:]} for {len(x_u8)} crops x {1 + n_aug} versions "
+        f"({time.perf_counter() - t0:.0f} s, {np.prod(shape) * 2 / 1e9:.2f} GB)")
+    return CachedInputs(path)
+
+
+def batch_inputs(x, idx, g: torch.Generator | None = None) -> torch.Tensor:
+    """The network's input for crops ``idx``: uint8 images (augmented with ``g``) or cached
+    frozen-front outputs (a random augmented version with ``g``)."""
+    if isinstance(x, CachedInputs):
+        return x.batch(idx, g)
+    t = to_tensor(x[idx])
+    return augment(t, g) if g is not None else t
+
+
 def rng_states(device: str) -> dict:
     """torch's own generators (the variational latent's noise draws from them), to checkpoint."""
     return {"cpu": torch.get_rng_state(), **({"cuda": torch.cuda.get_rng_state()} if device == "cuda" else {})}
@@ -224,7 +293,7 @@ def train_autoencoder(model: AutoEncoder, x_tr, y_tr, c_tr, x_va, y_va, c_va, ou
         try:
             for step, i in enumerate(starts[pos:], start=epoch * len(starts) + pos):
                 idx = np.sort(perm[i:i + batch][rank::n_proc])
-                xb = prec.channels_last(augment(to_tensor(x_tr[idx]), g).to(device))
+                xb = prec.channels_last(batch_inputs(x_tr, idx, g).to(device))
                 yb = to_tensor(y_tr[idx]).to(device)
                 cb = c_tr[idx].to(device) if cond else None
                 if lr_schedule == "budget":  # one clock: the same step size on every process under torchrun
@@ -290,7 +359,8 @@ def evaluate_l2(model, x, y, c=None, batch=256) -> float:
     dev = next(model.parameters()).device
     tot = 0.0
     for i in range(0, len(x), batch):
-        recon, mu, logvar = model(to_tensor(x[i:i + batch]).to(dev), None if c is None else c[i:i + batch].to(dev))
+        xb = batch_inputs(x, np.arange(i, min(i + batch, len(x))))
+        recon, mu, logvar = model(xb.to(dev), None if c is None else c[i:i + batch].to(dev))
         tot += float(((recon - to_tensor(y[i:i + batch]).to(dev)) ** 2).flatten(1).sum(1).sum())
     return tot / max(len(x), 1)
 
