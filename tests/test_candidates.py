@@ -72,3 +72,54 @@ def test_eval_takes_the_candidates_and_records_them(data_dir, tmp_path):
     assert one["detection"]["candidates"] == {"per_object": 1, "floor": 0.05}  # the bundle's: off
     assert three["detection"]["candidates"] == {"per_object": 3, "floor": 0.05}
     assert three["n_est"] == one["n_est"]  # one pose per object either way: the most confident of its boxes
+
+
+def _schedule(propagate, frames_dets, min_confidence=0.3):
+    """A BoxSchedule on a scripted detector (one list of detections per call); the model points
+    of object 1 and 5: a 100 mm cube."""
+    from tracker.runtime.pipeline import BoxSchedule
+    cube = np.array([[x, y, z] for x in (-50, 50) for y in (-50, 50) for z in (-50, 50)], float)
+    calls = iter(frames_dets)
+    return BoxSchedule(lambda rgb: next(calls), 1, {1: cube, 5: cube}, propagate=propagate,
+                       min_confidence=min_confidence)
+
+
+K_TEST = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
+
+
+def test_the_previous_pose_box_joins_the_objects_candidates_and_never_stands_alone_in_join():
+    img = np.zeros((480, 640, 3), np.uint8)
+    wrong = Detection(1, np.array([0.0, 0, 40, 40]), 0.8)
+    s = _schedule("join", [[Detection(1, np.array([270.0, 190, 100, 100]), 0.9)], [wrong], []])
+    first, src = s.boxes(img, K_TEST)
+    assert src == "detector" and len(first) == 1  # no previous pose yet: the detector's boxes as they are
+    at = PoseEstimate(1, np.eye(3), np.array([0.0, 0, 1000]), 0.7, first[0].box)
+    s.update([at])
+    dets, _ = s.boxes(img, K_TEST)
+    # the detector's (wrong) box and the pose's box, one group, the pose box at the detector's score
+    assert [d.obj_id for d in dets] == [1, 1] and dets[0].group == dets[1].group is not None
+    assert np.allclose(dets[0].box, wrong.box) and dets[1].score == 0.8
+    half = 50 * 500 / 950  # the cube's near face, 950 mm away, spans the box
+    assert np.allclose(dets[1].box, [320 - half, 240 - half, 2 * half + 1, 2 * half + 1])  # pixels inclusive
+    s.update([at])
+    assert s.boxes(img, K_TEST)[0] == []  # the detector found nothing: 'join' adds nothing
+
+
+def test_all_adds_a_missed_object_only_while_its_pose_was_confident():
+    img = np.zeros((480, 640, 3), np.uint8)
+    s = _schedule("all", [[], [], []])
+    s.prev = [PoseEstimate(5, np.eye(3), np.array([0.0, 0, 1000]), 0.6, np.zeros(4))]
+    s.lost = False
+    (d,), _ = s.boxes(img, K_TEST)
+    assert d.obj_id == 5 and d.group is None and d.score == 0.6  # the previous confidence carries (and fades)
+    s.update([PoseEstimate(5, np.eye(3), np.array([0.0, 0, 1000]), 0.2, d.box)])  # verified weakly: below 0.3
+    assert s.boxes(img, K_TEST)[0] == []  # not propagated again
+    off = _schedule("off", [[]])
+    off.prev, off.lost = [PoseEstimate(5, np.eye(3), np.array([0.0, 0, 1000]), 0.9, np.zeros(4))], False
+    assert off.boxes(img, K_TEST)[0] == []
+
+
+def test_an_unknown_propagation_mode_is_one_line():
+    from tracker.core.errors import UserError
+    with pytest.raises(UserError, match="--propagate sometimes"):
+        _schedule("sometimes", [])

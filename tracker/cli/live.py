@@ -148,6 +148,10 @@ def add_track(sub, REPO) -> None:
     s.add_argument("--detect-every", type=positive_int, default=1, metavar="N",
                    help="run the detector every N frames (and whenever an object is lost); in between, "
                         "boxes come from the previous poses")
+    s.add_argument("--propagate", choices=["off", "join", "all"], default="off",
+                   help="on detector frames, the previous frame's pose boxes as candidates, verified by the pose "
+                        "pipeline (the most confident pose kept): join: for the objects the detector found; all: "
+                        "also for those it missed whose previous pose was confident (--min-confidence)")
     s.add_argument("--smooth", type=float, default=None, metavar="ALPHA",
                    help="temporal smoothing on SO(3) x R^3, 0 < ALPHA <= 1 (smaller = smoother); off by default")
     s.add_argument("--boxes", choices=["auto", "gt", "detector"], default="auto",
@@ -162,7 +166,7 @@ def cmd_track(args) -> int:
     out = Path(args.out) if args.out else default_run_dir("track")
     cfg = TrackConfig(args.source, args.model, out, args.calib, args.rerun, args.max_frames, args.realtime,
                       not args.no_overlay, args.boxes, detect_every=args.detect_every, smooth=args.smooth,
-                      loop=args.loop, **_outputs(args))
+                      loop=args.loop, propagate=args.propagate, **_outputs(args))
     s = track(cfg, log=lambda m: print(m, file=sys.stderr))
     _print_run(s, out)
     _hold_viewer(s, args)

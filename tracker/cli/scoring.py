@@ -72,6 +72,9 @@ def add_score(sub, REPO) -> None:
     s.add_argument("--models", required=True, help="folder of obj_NNNNNN.ply")
     s.add_argument("--models-info", help="models_info.json (default: the models folder's, else computed)")
     s.add_argument("--json", required=True, help="metrics JSON to write")
+    s.add_argument("--per-instance", metavar="FILE",
+                   help="also write a CSV with one row per ground-truth instance, as 'eval --per-instance' does "
+                        "(e.g. for a 'track' run's poses.csv; the input of 'app.py lab compare')")
     s.set_defaults(func=cmd_score)
 
 
@@ -79,13 +82,19 @@ def cmd_score(args) -> int:
     from tracker.core.bop import check_output_file
     from tracker.evaluation.scoring import score_results, write_metrics_json
     check_output_file(args.json, "--json")
-    m = score_results(args.results, args.data, args.models, models_info=args.models_info)
+    if args.per_instance:
+        check_output_file(args.per_instance, "--per-instance")
+    records = []
+    m = score_results(args.results, args.data, args.models, models_info=args.models_info, records_out=records)
     write_metrics_json(args.json, m)
+    if args.per_instance:
+        from tracker.evaluation.scoring import per_instance_rows, write_per_instance
+        write_per_instance(args.per_instance, per_instance_rows(records))
     from tracker.evaluation.report import fmt_num  # (no instances: the recalls are null)
     print(f"{m['n_gt']} ground-truth instances, {m['n_est']} estimates: ADD(I) {fmt_num(m['add_recall'])}, "
           f"AR_MSSD {fmt_num(m['ar_mssd'])}, AR_MSPD {fmt_num(m['ar_mspd'])}, AR {fmt_num(m['ar'])} "
           f"(visibility: {m['visibility_source']})")
-    print(f"wrote {args.json}")
+    print(f"wrote {args.json}" + (f" and {args.per_instance}" if args.per_instance else ""))
     return 0
 
 

@@ -52,6 +52,8 @@ class TrackConfig:
     video_out: str | None = None  # the annotated frames as a video (.mp4, .avi, .mkv)
     frames_out: str | None = None  # ... and/or as numbered PNGs in this folder
     min_confidence: float = UNCERTAIN_BELOW  # poses below it are drawn and counted as uncertain
+    # the previous frame's pose boxes as verified candidates on detector frames (pipeline.BoxSchedule)
+    propagate: str = "off"
 
 
 @dataclass
@@ -200,7 +202,8 @@ def _boxes(cfg: TrackConfig, est: PoseEstimator, src, meshes: dict, gt_boxes, lo
         return None
     from tracker.runtime.detector import Detector
     pts = {o: np.asarray(m.vertices)[:: max(1, len(m.vertices) // 500)] for o, m in meshes.items()}
-    return BoxSchedule(Detector(est.bundle, threads=cfg.detector_threads), cfg.detect_every, pts, cfg.obj_ids)
+    return BoxSchedule(Detector(est.bundle, threads=cfg.detector_threads), cfg.detect_every, pts, cfg.obj_ids,
+                       propagate=cfg.propagate, min_confidence=cfg.min_confidence)
 
 
 def _close(stack: contextlib.ExitStack, failure: Exception | None) -> None:

@@ -43,14 +43,29 @@ class GtBoxes:
                 if o in self.known]
 
 
+PROPAGATE = ("off", "join", "all")
+
+
 class BoxSchedule:
     """Which boxes a frame uses: the detector's, or (when ``every`` > 1) boxes predicted from
     the previous frame's poses, the model points projected at that pose. The detector runs on
-    every ``every``-th frame and on any frame after one where an object was lost."""
+    every ``every``-th frame and on any frame after one where an object was lost.
 
-    def __init__(self, detector, every: int, points: dict[int, np.ndarray], obj_ids=None):
+    ``propagate`` (detector frames): the previous frame's pose boxes as candidates, verified by
+    the pose pipeline, never trusted. 'join': an object the detector found gets its previous
+    pose's box as one more candidate of its group (at the group's best detector score), and the
+    most confident pose of the group is kept; 'all': also an object the detector missed, if its
+    previous pose was confident (>= ``min_confidence``), with that confidence as the box's
+    score, so a pose no frame confirms fades below the bar and stops; 'off': the detector's
+    boxes only."""
+
+    def __init__(self, detector, every: int, points: dict[int, np.ndarray], obj_ids=None,
+                 propagate: str = "off", min_confidence: float = UNCERTAIN_BELOW):
         if int(every) < 1:
             raise UserError(f"--detect-every must be >= 1, got {every}")
+        if propagate not in PROPAGATE:
+            raise UserError(f"--propagate {propagate}: choose from {', '.join(PROPAGATE)}")
+        self.propagate, self.min_confidence = propagate, float(min_confidence)
         self.detector, self.every, self.points = detector, int(every), points
         self.obj_ids = set(obj_ids) if obj_ids else None
         self.detector_frames = 0
@@ -69,14 +84,42 @@ class BoxSchedule:
             dets = [d for d in self.detector(rgb) if self.obj_ids is None or d.obj_id in self.obj_ids]
             # objects, not candidates: one per group, one per detection without a group
             self.n_expected = len({d.group for d in dets if d.group is not None}) + sum(d.group is None for d in dets)
+            if self.propagate != "off" and self.prev:
+                dets = self._with_pose_boxes(dets, K, w, h)
             return dets, "detector"
         self.since += 1
         out = []
         for p in self.prev:
-            b = clip_box(box_from_points(project(self.points[p.obj_id], K, p.R, p.t)), w, h)
-            if b[2] > 4 and b[3] > 4:
+            b = self._pose_box(p, K, w, h)
+            if b is not None:
                 out.append(Detection(p.obj_id, b, p.detector_score))
         return out, "pose"
+
+    def _pose_box(self, p, K, w, h):
+        """The box the model points project to at pose ``p``, clipped; None if (nearly) empty."""
+        b = clip_box(box_from_points(project(self.points[p.obj_id], K, p.R, p.t)), w, h)
+        return b if b[2] > 4 and b[3] > 4 else None
+
+    def _with_pose_boxes(self, dets: list[Detection], K, w, h) -> list[Detection]:
+        """``dets`` with the previous poses' boxes added as candidates (``propagate``)."""
+        out = list(dets)
+        next_group = max((d.group for d in dets if d.group is not None), default=-1) + 1
+        for p in self.prev:
+            b = self._pose_box(p, K, w, h)
+            if b is None:
+                continue
+            mine = [i for i, d in enumerate(dets) if d.obj_id == p.obj_id]
+            groups = {out[i].group for i in mine}
+            if mine and len(groups) == 1:  # one object found: the pose box joins its candidates
+                g = groups.pop()
+                if g is None:
+                    g, next_group = next_group, next_group + 1
+                    for i in mine:
+                        out[i] = replace(out[i], group=g)
+                out.append(Detection(p.obj_id, b, max(dets[i].score for i in mine), group=g))
+            elif not mine and self.propagate == "all" and p.score >= self.min_confidence:
+                out.append(Detection(p.obj_id, b, p.score))
+        return out
 
     def update(self, poses):
         """The poses estimated from this frame's boxes (unsmoothed)."""
