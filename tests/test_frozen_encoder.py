@@ -36,8 +36,13 @@ def test_the_front_is_the_coco_backbone_frozen_and_stage_4_trains():
     recon, mu, _ = ae(x, c)
     assert recon.shape == (2, 3, 32, 32) and mu.shape == (2, 16)
     mu.sum().backward()
-    assert enc.trunk.in_conv.weight.grad is not None
+    assert enc.trunk[0].in_conv.weight.grad is not None
     assert all(p.grad is None for p in enc.frozen.parameters())
+    # nanodet32: stage 4 frozen too, only the layers after it train
+    enc32 = AutoEncoder("cvam", 64, 16, n_objects=2, encoder="nanodet32", recon_size=32).encoder
+    assert len(enc32.trunk) == 0 and not any(p.requires_grad for p in enc32.frozen.parameters())
+    with torch.no_grad():
+        assert torch.allclose(enc32.frozen(x), c5, atol=1e-5)
 
 
 def test_cached_outputs_equal_the_live_front_and_augmented_versions_differ(tmp_path):

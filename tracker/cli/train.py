@@ -18,12 +18,13 @@ def add_train(sub, REPO) -> None:
     s.add_argument("--data", required=True, help="a 'synth' split")
     s.add_argument("--out", required=True, help="bundle folder, e.g. models/lmo")
     s.add_argument("--method", choices=["dalsr", "cvml", "cvam"], default="cvam")
-    s.add_argument("--encoder", choices=["plain", "resnet", "lite0", "lite1", "lite2", "nanodet"], default="plain",
+    s.add_argument("--encoder", choices=["plain", "resnet", "lite0", "lite1", "lite2", "nanodet", "nanodet32"],
+                   default="plain",
                    help="plain strided convs (CVML-base), residual blocks (CVML-18 style), an ImageNet-pretrained "
                         "EfficientNet-Lite trunk (lite0/1/2, fine-tuned with its BatchNorm frozen), or the "
                         "COCO-pretrained NanoDet backbone (nanodet: frozen through stride 16, its outputs cached, "
-                        "stage 4 trained; reconstructs at 64 px); pretrained trunks take crops a multiple of 32 px, "
-                        "e.g. --size 128")
+                        "stage 4 trained; nanodet32: stage 4 frozen too; reconstructs at 64 px); pretrained trunks "
+                        "take crops a multiple of 32 px, e.g. --size 128")
     s.add_argument("--no-pretrained", action="store_true",
                    help="with --encoder lite*: the same network from random weights, BatchNorm learning (the control)")
     s.add_argument("--lr", type=positive_float, default=1e-3, help="the autoencoder's AdamW learning rate")

@@ -351,7 +351,7 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
     torch = require_torch()
     from tracker.training.crops import CropSet, build_training_crops, crops_cache_path, train_val_split
     from tracker.core.meshes import load_models
-    from tracker.training.nets.autoencoder import ENCODERS, FROZEN, METHODS, PRETRAINED, AutoEncoder
+    from tracker.training.nets.autoencoder import ENCODERS, FROZEN, FROZEN_THROUGH, METHODS, PRETRAINED, AutoEncoder
     from tracker.training.nets.fit import (CachedInputs, cache_frozen_outputs, encode_all, onehot, to_tensor,
                                            train_autoencoder)
     from tracker.training.nets.precision import resolve, resolve_device
@@ -501,7 +501,8 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
                       else "none",
                       **({"processes": n_proc} if n_proc > 1 else {}),
                       **({"pretrained": pretrained} if encoder not in ("plain", "resnet") else {}),
-                      **({"frozen_front": "stem..stage3 (stride 16)", "frozen_augmentations": FROZEN_AUGMENTATIONS,
+                      **({"frozen_front": f"NanoDet stem..stage{FROZEN_THROUGH[encoder]} (COCO)",
+                          "frozen_augmentations": FROZEN_AUGMENTATIONS,
                           "recon_size": recon} if frozen_front else {}),
                       **({"init_from": str(init_from)} if init_from else {}), "onnx_max_abs_diff": diff},
             validation_synthetic=val,

@@ -15,7 +15,7 @@ take images only). ``nanodet``: the COCO-pretrained NanoDet backbone
 (:mod:`tracker.training.nets.nanodet`, pretrained for detection): its stem and stages 1-3
 (through stride 16) frozen, so their outputs can be cached per crop
 (:class:`tracker.training.nets.fit.CachedInputs`), stage 4 trained, then the same 1x1 conv and
-latent layers. Every conv of encoder and decoder is followed by BatchNorm (``norm``, on
+latent layers; ``nanodet32``: stage 4 frozen too. Every conv of encoder and decoder is followed by BatchNorm (``norm``, on
 by default; export folds it into the conv) and SiLU, nearest-neighbour upsampling + conv
 decoder (no transposed convolutions). Without the BatchNorm, training from scratch sat for
 ~500 steps at the per-object mean image (validation L2 ~330 on a two-object build; a plain
@@ -31,7 +31,10 @@ from torch.nn import functional as F
 
 METHODS = ("dalsr", "cvml", "cvam")
 PRETRAINED = ("lite0", "lite1", "lite2")
-FROZEN = ("nanodet",)  # a frozen front whose outputs training caches
+# a frozen front whose outputs training caches: NanoDet's backbone frozen through stage 3
+# (stride 16; stage 4 trained) or through stage 4 (stride 32; only the layers after it trained)
+FROZEN_THROUGH = {"nanodet": 3, "nanodet32": 4}
+FROZEN = tuple(FROZEN_THROUGH)
 ENCODERS = ("plain", "resnet") + PRETRAINED + FROZEN
 TRUNK_REDUCED = 128  # channels of the pretrained trunk's features after the 1x1 conv
 
@@ -81,8 +84,9 @@ class Encoder(nn.Module):
             if size % 32:
                 raise ValueError(f"the NanoDet trunk needs a crop size that is a multiple of 32, not {size}")
             bb = (load_weights(NanoDet(coco_head=False)) if pretrained else NanoDet(coco_head=False)).backbone
-            self.frozen = nn.Sequential(bb.stem, bb.stage1, bb.stage2, bb.stage3).requires_grad_(False)
-            self.trunk = bb.stage4
+            stages, k = [bb.stem, bb.stage1, bb.stage2, bb.stage3, bb.stage4], FROZEN_THROUGH[arch]
+            self.frozen = nn.Sequential(*stages[:k + 1]).requires_grad_(False)
+            self.trunk = nn.Sequential(*stages[k + 1:])  # (empty: the identity)
             self.reduce = nn.Conv2d(512, TRUNK_REDUCED, 1)
             self.convs = nn.ModuleList()
             self.feat, cin = size // 32, TRUNK_REDUCED
