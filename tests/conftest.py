@@ -109,3 +109,17 @@ def fixture_meshes(tmp_path, names=("obj_000001.ply", "obj_000002.ply")) -> Path
     for f in names:
         shutil.copy(FIXTURE_MESHES / f, src / f)
     return src
+
+
+def assert_bundle_poses_a_split_frame(bundle_dir, split) -> None:
+    """The bundle poses the visible instances of the split's first frame from their ground-truth
+    boxes: at least one pose, every rotation orthonormal."""
+    import numpy as np
+    from tracker.core.bop import load_scene
+    from tracker.runtime.estimator import Detection, PoseEstimator
+    est = PoseEstimator(bundle_dir)
+    scene = load_scene(Path(split) / "000000", require_gt=True)
+    dets = [Detection(g.obj_id, np.asarray(g.info["bbox_visib"], float)) for g in scene.gt[0]
+            if g.info["bbox_visib"][2] > 1]
+    poses = est.estimate(scene.read_rgb(0), scene.K(0), dets)
+    assert poses and all(np.allclose(p.R @ p.R.T, np.eye(3), atol=1e-5) for p in poses)

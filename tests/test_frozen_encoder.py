@@ -8,6 +8,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
+from tests.conftest import assert_bundle_poses_a_split_frame  # noqa: E402
 from tracker.core.errors import UserError  # noqa: E402
 from tracker.training.nets.autoencoder import AutoEncoder  # noqa: E402
 from tracker.training.nets.fit import CachedInputs, augment, batch_inputs, cache_frozen_outputs, to_tensor  # noqa: E402
@@ -75,8 +76,6 @@ def test_cached_outputs_equal_the_live_front_and_augmented_versions_differ(tmp_p
 
 
 def test_a_tiny_training_run_caches_once_exports_and_estimates(data_dir, tmp_path):
-    from tracker.core.bop import load_scene
-    from tracker.runtime.estimator import Detection, PoseEstimator
     from tracker.training.synth.engine import SynthConfig, generate
     from tracker.training.train import train_bundle
     split = tmp_path / "split"
@@ -89,12 +88,7 @@ def test_a_tiny_training_run_caches_once_exports_and_estimates(data_dir, tmp_pat
     assert sum("cached the frozen front" in str(s) for s in logs) == 1
     work = tmp_path / "b.work"
     assert len(list(work.glob("frozen_nanodet_*.npy"))) == 1
-    est = PoseEstimator(tmp_path / "b")
-    scene = load_scene(split / "000000", require_gt=True)
-    dets = [Detection(g.obj_id, np.asarray(g.info["bbox_visib"], float)) for g in scene.gt[0]
-            if g.info["bbox_visib"][2] > 1]
-    poses = est.estimate(scene.read_rgb(0), scene.K(0), dets)
-    assert poses and all(np.allclose(p.R @ p.R.T, np.eye(3), atol=1e-5) for p in poses)
+    assert_bundle_poses_a_split_frame(tmp_path / "b", split)
     # a second run on the same split into the same work folder reads the cache instead of making it
     logs.clear()
     (work / "ae_checkpoint.pt").unlink()

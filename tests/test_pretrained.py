@@ -64,21 +64,15 @@ def test_a_missing_weights_package_is_a_one_line_error(monkeypatch):
 
 def test_a_tiny_training_run_with_the_pretrained_trunk_exports_and_estimates(data_dir, tmp_path):
     from tracker.training.synth.engine import SynthConfig, generate
+    from tests.conftest import assert_bundle_poses_a_split_frame
     from tracker.training.train import train_bundle
-    from tracker.core.bop import load_scene
-    from tracker.runtime.estimator import Detection, PoseEstimator
     split = tmp_path / "split"
     generate(SynthConfig(models_dir=str(data_dir / "lmo" / "models"), backgrounds_dir=str(data_dir / "backgrounds"),
                          obj_ids=[1, 9], seed=5, objects_per_image=(2, 2)), split, 4, workers=1, progress=False)
     m = train_bundle(split, tmp_path / "b", method="cvam", size=32, latent=16, max_steps=2, reg_epochs=2,
                      encoder="lite0", lr=3e-4, batch=8, log=lambda *a: None)
     assert m.encoder == "lite0" and m.training["pretrained"] and m.training["onnx_max_abs_diff"] <= 1e-4
-    est = PoseEstimator(tmp_path / "b")
-    scene = load_scene(split / "000000", require_gt=True)
-    dets = [Detection(g.obj_id, np.asarray(g.info["bbox_visib"], float)) for g in scene.gt[0]
-            if g.info["bbox_visib"][2] > 1]
-    poses = est.estimate(scene.read_rgb(0), scene.K(0), dets)
-    assert poses and all(np.allclose(p.R @ p.R.T, np.eye(3), atol=1e-5) for p in poses)
+    assert_bundle_poses_a_split_frame(tmp_path / "b", split)
 
 
 def test_the_trunk_gives_stride_8_16_32_features_at_the_detectors_input():
