@@ -180,3 +180,14 @@ def test_bad_occluder_folders_are_one_line_each(data_dir, tmp_path):
                         "--out", str(tmp_path / "c"), "--images", "1", "--occluders", str(tmp_path / "empty")],
                        capture_output=True, text=True, cwd=ROOT)
     assert r.returncode != 0 and "no .ply/.obj" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_occluders_keep_face_colours_and_grey_only_what_has_none(tmp_path):
+    from tracker.training.synth.randomise import occluder_meshes
+    faces = trimesh.creation.box(extents=[1, 2, 3])
+    faces.visual.face_colors = np.tile([10, 200, 30, 255], (len(faces.faces), 1))
+    faces.export(tmp_path / "a_faces.obj")
+    trimesh.creation.icosphere(radius=1).export(tmp_path / "b_plain.stl")  # no colour at all
+    a, b = occluder_meshes([tmp_path / "a_faces.obj", tmp_path / "b_plain.stl"], np.random.default_rng(0))
+    assert np.array_equal(np.unique(np.asarray(a.visual.vertex_colors)[:, :3], axis=0), [[10, 200, 30]])
+    assert len(np.unique(np.asarray(b.visual.vertex_colors)[:, :3], axis=0)) == 1  # one flat colour

@@ -15,8 +15,9 @@ take images only). ``nanodet``: the COCO-pretrained NanoDet backbone
 (:mod:`tracker.training.nets.nanodet`, pretrained for detection): its stem and stages 1-3
 (through stride 16) frozen, so their outputs can be cached per crop
 (:class:`tracker.training.nets.fit.CachedInputs`), stage 4 trained, then the same 1x1 conv and
-latent layers; ``nanodet32``: stage 4 frozen too. Every conv of encoder and decoder is followed by BatchNorm (``norm``, on
-by default; export folds it into the conv) and SiLU, nearest-neighbour upsampling + conv
+latent layers; ``nanodet32``: stage 4 frozen too. Every conv of encoder and decoder is followed
+by BatchNorm (``norm``, on by default; export folds it into the conv) and SiLU, nearest-neighbour
+upsampling + conv
 decoder (no transposed convolutions). Without the BatchNorm, training from scratch sat for
 ~500 steps at the per-object mean image (validation L2 ~330 on a two-object build; a plain
 autoencoder without the VAE's noise saturated at the black image and never left it); with it

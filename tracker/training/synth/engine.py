@@ -36,9 +36,9 @@ from tracker.core.errors import UserError
 from tracker.core.visibility import scene_visibility
 from tracker.core import priors
 from tracker.training.synth.randomise import (Backgrounds, camera_effects, cast_shadows, composite, distractor_meshes, household_meshes,
-                        list_occluders, occluder_meshes, jitter_colours, target_palette, texture_from_photos, tint_distractors,
-                        list_backgrounds, sample_lights, sample_materials, sample_overhead_lights,
-                        table_surface)
+                        jitter_colours, target_palette, texture_from_photos, tint_distractors,
+                        list_backgrounds, list_occluders, occluder_meshes, sample_lights, sample_materials,
+                        sample_overhead_lights, table_surface)
 
 CHUNK = 1000
 DEPTH_SCALE = 0.1  # mm per unit of the written depth PNGs (up to 6.5 m)

@@ -247,8 +247,12 @@ def occluder_meshes(files: list[Path], rng: np.random.Generator, n: int = 48,
             raise UserError(f"{files[i]}: not a readable mesh ({type(e).__name__})") from None
         if not isinstance(m, trimesh.Trimesh) or len(m.faces) == 0:
             raise UserError(f"{files[i]}: no triangles")
-        if m.visual.kind != "vertex":
-            m.visual = trimesh.visual.ColorVisuals(m, vertex_colors=np.full((len(m.vertices), 4), 180, np.uint8))
+        if m.visual.kind != "vertex":  # face colours or a texture sampled at the vertices, else grey
+            try:
+                colours = np.asarray((m.visual if m.visual.kind == "face" else m.visual.to_color()).vertex_colors)
+            except Exception:  # noqa: BLE001 - no usable colour of any kind
+                colours = np.full((len(m.vertices), 4), 180, np.uint8)
+            m.visual = trimesh.visual.ColorVisuals(m, vertex_colors=colours)
         m.apply_translation(-m.bounds.mean(0))
         m.apply_scale(rng.uniform(*size_mm) / max(float(m.extents.max()), 1e-9))
         out.append(m)
