@@ -599,6 +599,16 @@ def test_join_detectors_averages_the_networks_and_quantises_them(tiny_detector_b
     a, b, joined = maps(tiny_detector_bundle), maps(second), maps(tmp_path / "joined")
     assert not np.allclose(a, b, atol=1e-3)  # two networks, so their mean is neither
     assert np.abs(joined - (a + b) / 2).max() < 1e-5
+    # a member of another normalisation (a pretrained network's) gets its own from the shared input
+    other = tmp_path / "other_norm"
+    shutil.copytree(second, other)
+    update_manifest(other, lambda mf, stage: mf.detector.update(mean=0.0, std=1.0))
+    mixed = join_detectors(tiny_detector_bundle, [other], out_dir=tmp_path / "mixed", **quiet)
+    b_own = maps(other)  # the second graph on its own normalisation of the frame
+    assert not np.allclose(b_own, b, atol=1e-3)
+    assert np.abs(maps(tmp_path / "mixed") - (a + b_own) / 2).max() < 1e-5
+    assert mixed.detector["ensemble"]["from"][1]["normalisation"] == [0.0, 1.0]
+    assert (mixed.detector["mean"], mixed.detector["std"]) == (m.detector["mean"], m.detector["std"])
 
     q = join_detectors(tiny_detector_bundle, [second], out_dir=tmp_path / "int8", int8_data=split,
                        calibration_images=3, score_thresh=0.15, **quiet)

@@ -163,7 +163,7 @@ def add_commands(sub, REPO) -> None:
     s = sub.add_parser("join-detectors", help="one detector averaging the detectors of several bundles (optionally int8 "
                                                 "or with float16 weights), or one network stored so")
     add_join(s, "bundle folder that gets the joined detector (its own is the first member)", "detectors_from",
-              "bundles whose detectors (same classes, input and normalisation) join", required=False)
+              "bundles whose detectors (same classes and input; each keeps its own normalisation) join", required=False)
     s.add_argument("--mirror", choices=("none", "both", "alternate"), default="none",
                    help="mirror images too: 'both' averages every network on the image and its mirror image "
                         "(twice the work; one network needs no --from then), 'alternate' shows the networks the "

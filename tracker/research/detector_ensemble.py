@@ -17,8 +17,9 @@ from tracker.runtime.detector import DetectorSpec, bundle_with_detector, float_d
 from tracker.core.errors import UserError
 from tracker.core.manifest import Manifest
 
-# what every member must share for one letterbox, one normalisation and one decoder to serve all
-CONTRACT = ("classes", "input_w", "input_h", "stride", "mean", "std", "pad_value", "boxes")
+# what every member must share for one letterbox and one decoder to serve all (a member of another
+# normalisation gets its own from the shared input: input_affine)
+CONTRACT = ("classes", "input_w", "input_h", "stride", "pad_value", "boxes")
 CALIBRATION_IMAGES = 200
 
 
@@ -46,14 +47,24 @@ def member_views(n: int, mirror: str) -> list[tuple[str, ...]]:
     return [("plain",)] * n
 
 
-def merge_graphs(paths, out_path, mirror: str = "none") -> None:
+def input_affine(spec: DetectorSpec, first: DetectorSpec) -> tuple[float, float] | None:
+    """(a, b) such that a member normalised by ``spec`` gets its own input as ``a * x + b`` from
+    ``x``, the input normalised by the ensemble's (the first member's) ``first``:
+    (rgb - m) / s = x * (s0 / s) + (m0 - m) / s. None when the two normalisations are the same."""
+    if (spec.mean, spec.std) == (first.mean, first.std):
+        return None
+    return first.std / spec.std, (first.mean - spec.mean) / spec.std
+
+
+def merge_graphs(paths, out_path, mirror: str = "none", affine: list | None = None) -> None:
     """One ONNX graph: the members side by side on one shared input, their outputs averaged
     (``Mean``) into one output named as the first member's. The batch is fixed at 1 (the
     run-time detector sees one frame at a time), which lets onnxruntime fold the shape
     arithmetic of the upsampling away (measured: 6.4 against 6.8 ms for three int8 members).
     ``mirror`` (``member_views``): members that see the image mirrored left to right (with
     ``both``, as a batch of 2 with the image) have that output mirrored back and its x offsets
-    turned (``mirror_fix``) before the mean."""
+    turned (``mirror_fix``) before the mean. ``affine``: per member None or (a, b) of
+    :func:`input_affine`: that member takes ``a * input + b`` (its own normalisation)."""
     onnx = _onnx()
     from onnx import compose, helper, numpy_helper
     models = [onnx.load(str(p)) for p in paths]
@@ -82,10 +93,19 @@ def merge_graphs(paths, out_path, mirror: str = "none") -> None:
         m = compose.add_prefix(m, f"m{i}_")
         g = m.graph
         mine = g.input[0].name
+        feed = feeds[view]
+        if affine and affine[i] is not None:  # the member's own normalisation of the shared input
+            a, b = affine[i]
+            inits += [numpy_helper.from_array(np.array(a, np.float32), f"m{i}_norm_a"),
+                      numpy_helper.from_array(np.array(b, np.float32), f"m{i}_norm_b")]
+            nodes += [helper.make_node("Mul", [feed, f"m{i}_norm_a"], [f"m{i}_norm_scaled"], name=f"m{i}_norm_scaled"),
+                      helper.make_node("Add", [f"m{i}_norm_scaled", f"m{i}_norm_b"], [f"m{i}_norm_in"],
+                                       name=f"m{i}_norm_in")]
+            feed = f"m{i}_norm_in"
         for n in g.node:
             for k, name in enumerate(n.input):
                 if name == mine:
-                    n.input[k] = feeds[view]
+                    n.input[k] = feed
         nodes += g.node
         inits += g.initializer
         o, p = g.output[0].name, f"m{i}_mirror_"
@@ -384,15 +404,17 @@ def join_detectors(model_dir, others, out_dir=None, int8_data=None, calibration_
         diff = [k for k in CONTRACT if getattr(spec, k) != getattr(spec0, k)]
         if diff:
             raise UserError(f"{path}: its detector differs from {model_dir}'s in {', '.join(diff)}; "
-                            "only detectors of the same classes, input, normalisation and kind of box can be averaged")
+                            "only detectors of the same classes, input and kind of box can be averaged")
     out = Path(out_dir) if out_dir else src.root
     with tempfile.TemporaryDirectory() as tmp:
         joined = Path(tmp) / "joined.onnx"
-        merge_graphs([p for *_, p in members], joined, mirror=mirror)
+        merge_graphs([p for *_, p in members], joined, mirror=mirror,
+                     affine=[input_affine(spec, spec0) for _, spec, _, _ in members])
         info = {"members": len(members), "mirror": mirror, "views": [list(v) for v in views],
                 "from": [{"bundle": str(path), "detector_sha256": sha256(p), "command": d.get("training", {}).get("command"),
-                          "data": d.get("training", {}).get("data"), "steps": d.get("training", {}).get("steps")}
-                         for path, _, d, p in members],
+                          "data": d.get("training", {}).get("data"), "steps": d.get("training", {}).get("steps"),
+                          "normalisation": [spec.mean, spec.std]}
+                         for path, spec, d, p in members],
                 "note": "training is the first member's",
                 "command": command or "app.py " + " ".join(sys.argv[1:]),
                 "created": time.strftime("%Y-%m-%d %H:%M:%S")}
