@@ -73,7 +73,7 @@ def main(argv=None) -> int:
     except (UserError, subprocess.CalledProcessError, OSError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
-    print(f"wrote {len(written)} files to {out}")
+    print(f"wrote {len(written)} file{'s' if len(written) != 1 else ''} to {out}")
     return 0
 
 

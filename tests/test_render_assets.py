@@ -191,3 +191,26 @@ def test_occluders_keep_face_colours_and_grey_only_what_has_none(tmp_path):
     a, b = occluder_meshes([tmp_path / "a_faces.obj", tmp_path / "b_plain.stl"], np.random.default_rng(0))
     assert np.array_equal(np.unique(np.asarray(a.visual.vertex_colors)[:, :3], axis=0), [[10, 200, 30]])
     assert len(np.unique(np.asarray(b.visual.vertex_colors)[:, :3], axis=0)) == 1  # one flat colour
+
+
+def test_the_script_writes_the_furniture_and_its_copyright_from_a_package(tmp_path, monkeypatch, capsys):
+    import hashlib
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("debian_assets", ROOT / "scripts" / "debian_assets.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as z:
+        z.writestr("PluginFurnitureCatalog.properties", CATALOG)
+        obj, mtl = _box_obj([1.0, 1.2, 0.8], (0.1, 0.7, 0.2))
+        z.writestr("test/mug/mug.obj", obj)
+        z.writestr("test/mug/m.mtl", mtl)
+    deb = _deb({"usr/share/sweethome3d/furniture/Kitchen.sh3f": buf.getvalue(),
+                "usr/share/doc/sweethome3d-furniture/copyright": b"Files: *\nLicense: CC0\n"})
+    (tmp_path / "f.deb").write_bytes(deb)
+    name, version, _ = script.PACKAGES["furniture"]
+    monkeypatch.setitem(script.PACKAGES, "furniture", (name, version, hashlib.sha256(deb).hexdigest()))
+    assert script.main(["furniture", "--out", str(tmp_path / "out"), "--deb", str(tmp_path / "f.deb")]) == 0
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["COPYRIGHT", "kitchen_red_mug_1.ply"]
+    assert (tmp_path / "out" / "COPYRIGHT").read_text().endswith("License: CC0\n")
+    assert "wrote 1 file to" in capsys.readouterr().out
