@@ -98,18 +98,21 @@ def _box_obj(extents, kd) -> tuple[str, str]:
     return "\n".join(lines) + "\n", f"newmtl paint\nKd {kd[0]} {kd[1]} {kd[2]}\n"
 
 
-def test_small_furniture_becomes_coloured_meshes_in_mm_z_up(tmp_path):
+def _sh3f(models: dict) -> bytes:
+    """A catalog (CATALOG) with the given models: {name: (obj, mtl)} at test/NAME/NAME.obj."""
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w") as z:
         z.writestr("PluginFurnitureCatalog.properties", CATALOG)
-        # the model's own units and axes differ from the catalog's: width x (10), height y (12), depth z (8)
-        obj, mtl = _box_obj([1.0, 1.2, 0.8], (0.8, 0.1, 0.1))
-        z.writestr("test/mug/mug.obj", obj)
-        z.writestr("test/mug/m.mtl", mtl)
-        obj, mtl = _box_obj([2.0, 0.8, 0.9], (0.1, 0.1, 0.8))
-        z.writestr("test/sofa/sofa.obj", obj)
-        z.writestr("test/sofa/m.mtl", mtl)
-    written = furniture_from_sh3f(buf.getvalue(), tmp_path, max_cm=80.0, prefix="t_")
+        for name, (obj, mtl) in models.items():
+            z.writestr(f"test/{name}/{name}.obj", obj)
+            z.writestr(f"test/{name}/m.mtl", mtl)
+    return buf.getvalue()
+
+
+def test_small_furniture_becomes_coloured_meshes_in_mm_z_up(tmp_path):
+    # the model's own units and axes differ from the catalog's: width x (10), height y (12), depth z (8)
+    sh3f = _sh3f({"mug": _box_obj([1.0, 1.2, 0.8], (0.8, 0.1, 0.1)), "sofa": _box_obj([2.0, 0.8, 0.9], (0.1, 0.1, 0.8))})
+    written = furniture_from_sh3f(sh3f, tmp_path, max_cm=80.0, prefix="t_")
     assert [p.name for p in written] == ["t_red_mug_1.ply"]  # the sofa is too big
     mesh = trimesh.load(written[0], force="mesh")
     assert np.allclose(mesh.extents, [100.0, 80.0, 120.0], atol=0.5)  # mm; the catalog's height on z
@@ -199,13 +202,7 @@ def test_the_script_writes_the_furniture_and_its_copyright_from_a_package(tmp_pa
     spec = importlib.util.spec_from_file_location("debian_assets", ROOT / "scripts" / "debian_assets.py")
     script = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(script)
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w") as z:
-        z.writestr("PluginFurnitureCatalog.properties", CATALOG)
-        obj, mtl = _box_obj([1.0, 1.2, 0.8], (0.1, 0.7, 0.2))
-        z.writestr("test/mug/mug.obj", obj)
-        z.writestr("test/mug/m.mtl", mtl)
-    deb = _deb({"usr/share/sweethome3d/furniture/Kitchen.sh3f": buf.getvalue(),
+    deb = _deb({"usr/share/sweethome3d/furniture/Kitchen.sh3f": _sh3f({"mug": _box_obj([1.0, 1.2, 0.8], (0.1, 0.7, 0.2))}),
                 "usr/share/doc/sweethome3d-furniture/copyright": b"Files: *\nLicense: CC0\n"})
     (tmp_path / "f.deb").write_bytes(deb)
     name, version, _ = script.PACKAGES["furniture"]
