@@ -102,11 +102,10 @@ class CachedInputs:
         """Crops ``idx`` (of this subset): version 0, or with ``g`` a random augmented one each."""
         rows = self.rows[np.asarray(idx)]
         if g is None or self.versions == 1:
-            out = self.arr[0, rows]
+            ver = np.zeros(len(rows), np.int64)
         else:
             ver = 1 + torch.randint(self.versions - 1, (len(rows),), generator=g).numpy()
-            out = np.stack([self.arr[v, r] for v, r in zip(ver, rows)])
-        return torch.from_numpy(np.asarray(out, dtype=np.float32))
+        return torch.from_numpy(np.asarray(self.arr[ver, rows], dtype=np.float32))
 
 
 @torch.no_grad()

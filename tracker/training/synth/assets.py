@@ -17,6 +17,7 @@ import numpy as np
 import trimesh
 
 from tracker.core.errors import UserError
+from tracker.training.synth.randomise import vertex_coloured
 
 
 def deb_files(deb: bytes, suffix: str) -> dict[str, bytes]:
@@ -127,22 +128,6 @@ def furniture_from_sh3f(sh3f: bytes, out_dir, max_cm: float = 80.0, max_faces: i
 
 def _coloured(scene) -> trimesh.Trimesh | None:
     """One mesh of a scene's parts, each part's texture or material colour sampled into
-    vertex colours."""
-    parts = []
-    for geom in scene.dump():
-        if not isinstance(geom, trimesh.Trimesh) or len(geom.faces) == 0:
-            continue
-        g = geom.copy()
-        try:  # the texture sampled at the vertices' UVs
-            colours = np.asarray(g.visual.to_color().vertex_colors, np.uint8)
-        except Exception:  # noqa: BLE001 - no UVs or no image: the material's colour, else grey
-            colours = np.empty((0, 4), np.uint8)
-        if colours.ndim != 2 or len(colours) != len(g.vertices):
-            main = getattr(getattr(g.visual, "material", None), "main_color", None)
-            colours = np.tile(np.asarray(main if main is not None else (180, 180, 180, 255), np.uint8),
-                              (len(g.vertices), 1))
-        g.visual = trimesh.visual.ColorVisuals(g, vertex_colors=colours)
-        parts.append(g)
-    if not parts:
-        return None
-    return trimesh.util.concatenate(parts)
+    vertex colours (:func:`vertex_coloured`)."""
+    parts = [vertex_coloured(g.copy()) for g in scene.dump() if isinstance(g, trimesh.Trimesh) and len(g.faces)]
+    return trimesh.util.concatenate(parts) if parts else None

@@ -233,6 +233,23 @@ def list_occluders(folder) -> list[Path]:
     return files
 
 
+def vertex_coloured(m: trimesh.Trimesh) -> trimesh.Trimesh:
+    """``m`` (in place) with vertex colours, as the renderer colours: its own, its face colours,
+    its texture sampled at the vertices' UVs, its material's colour, else grey."""
+    if m.visual.kind == "vertex":
+        return m
+    try:
+        colours = np.asarray((m.visual if m.visual.kind == "face" else m.visual.to_color()).vertex_colors, np.uint8)
+    except Exception:  # noqa: BLE001 - no UVs or no image: no sampled colour
+        colours = np.empty((0, 4), np.uint8)
+    if colours.ndim != 2 or len(colours) != len(m.vertices):
+        main = getattr(getattr(m.visual, "material", None), "main_color", None)
+        colours = np.tile(np.asarray(main if main is not None else (180, 180, 180, 255), np.uint8),
+                          (len(m.vertices), 1))
+    m.visual = trimesh.visual.ColorVisuals(m, vertex_colors=colours)
+    return m
+
+
 def occluder_meshes(files: list[Path], rng: np.random.Generator, n: int = 48,
                     size_mm: tuple[float, float] = (40.0, 250.0)) -> list[trimesh.Trimesh]:
     """``n`` of the meshes (all, if fewer), each centred and scaled to a largest side drawn
@@ -247,12 +264,7 @@ def occluder_meshes(files: list[Path], rng: np.random.Generator, n: int = 48,
             raise UserError(f"{files[i]}: not a readable mesh ({type(e).__name__})") from None
         if not isinstance(m, trimesh.Trimesh) or len(m.faces) == 0:
             raise UserError(f"{files[i]}: no triangles")
-        if m.visual.kind != "vertex":  # face colours or a texture sampled at the vertices, else grey
-            try:
-                colours = np.asarray((m.visual if m.visual.kind == "face" else m.visual.to_color()).vertex_colors)
-            except Exception:  # noqa: BLE001 - no usable colour of any kind
-                colours = np.full((len(m.vertices), 4), 180, np.uint8)
-            m.visual = trimesh.visual.ColorVisuals(m, vertex_colors=colours)
+        vertex_coloured(m)
         m.apply_translation(-m.bounds.mean(0))
         m.apply_scale(rng.uniform(*size_mm) / max(float(m.extents.max()), 1e-9))
         out.append(m)
