@@ -114,6 +114,10 @@ def add_train_detector(sub, REPO) -> None:
                         "COCO-pretrained trunk and neck (tracker/training/pretrained/NOTICE.md) under full-width heads")
     s.add_argument("--no-pretrained", action="store_true",
                    help="with --backbone lite* or nanodet: the same network from random weights (the control)")
+    s.add_argument("--freeze-through", choices=("stem", "stage1", "stage2", "stage3", "stage4"), default=None,
+                   metavar="STAGE", help="with --backbone nanodet: keep the COCO backbone's weights from its stem "
+                        "through this stage (stage2: stride 8, stage3: stride 16; no backward pass through it) "
+                        "and train the rest")
     s.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto",
                    help="where the detector trains: a CUDA GPU where torch sees one (auto), or the CPU")
     add_precision(s)
@@ -129,7 +133,7 @@ def cmd_train_detector(args) -> int:
                        cutouts=args.cutouts, cutout_share=args.cutout_share,
                        precision=args.precision, box_kind=args.boxes, colour=args.colour, ema=args.ema,
                        backbone=args.backbone, pretrained=not args.no_pretrained, device=args.device,
-                       command="app.py " + " ".join(sys.argv[1:]))
+                       freeze_through=args.freeze_through, command="app.py " + " ".join(sys.argv[1:]))
     if d is None:  # a helper process of a torchrun job: the first process writes the bundle
         return 0
     v = d["training"]["validation_synthetic"]

@@ -35,7 +35,8 @@ CUTOUT_MAX_SIDE = 160  # px a cut-out is kept at; pastes reach 40 % of the input
 CUTOUT_SHARE = 0.5     # share of training images that get cut-outs when --cutouts is given
 # recipe keys added after checkpoints were first written, at the value a run without them records
 RECIPE_ADDED = {"cutouts": None, "cutout_share": 0.0, "boxes": "visible", "frozen_batchnorm": False,
-                "colour": "standard", "ema": 0.0, "backbone": "plain", "pretrained": False}
+                "colour": "standard", "ema": 0.0, "backbone": "plain", "pretrained": False,
+                "freeze_through": None}
 COLOUR_AUGS = ("standard", "strong", "mild")
 
 
@@ -441,6 +442,8 @@ def _recipe_options(old: dict, new: dict) -> str:
             out.append("no --cutouts" if v is None else f"--cutouts (a folder of {v})")
         elif k == "frozen_batchnorm":
             out.append("--init-from a bundle (its BatchNorms frozen)" if v else "no --init-from a bundle")
+        elif v is None:
+            out.append(f"no --{k.replace('_', '-')}")
         else:
             out.append(f"--{k.replace('_', '-')} {v}")
     return ", ".join(out)
@@ -459,7 +462,7 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
                    command: str | None = None, precision: str = "auto", box_kind: str = "visible",
                    colour: str = "standard", ema: float = 0.0, backbone: str = "plain",
                    pretrained: bool = True, device: str = "cpu", stage_minutes: float | None = None,
-                   max_steps: int | None = None) -> dict:
+                   max_steps: int | None = None, freeze_through: str | None = None) -> dict:
     """``stage_minutes``: the whole call's budget (``build``): training gets ``minutes`` or what
     is left of it after loading the images, less :data:`AFTER_MINUTES` for validation and
     export. ``backbone``: ``plain`` (:class:`CenterNetLite` from random weights) or an
@@ -471,7 +474,10 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     last weights. ``max_steps``: a budget of training steps (the resumed run's included) instead
     of time: training ends after that many, however long they take (``minutes`` and
     ``stage_minutes`` then end nothing, and the step size's cosine runs over the steps), so a
-    seed gives the same network on any machine.
+    seed gives the same network on any machine. ``freeze_through`` (``nanodet`` only): the
+    COCO backbone from its stem through this stage (``stage2``: stride 8, ``stage3``: 16) keeps
+    its weights: no gradients, no backward pass through it; the later stages, the neck and the
+    heads train.
 
     Under ``torchrun --nproc_per_node N`` (DistributedDataParallel: gloo on CPUs, NCCL on GPUs)
     the N processes share every batch; the first one validates, exports and writes the bundle
@@ -486,6 +492,13 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     if backbone != "plain" and init_from and Path(init_from).is_dir():
         raise UserError("--init-from BUNDLE reads back a plain detector; with --backbone "
                         f"{backbone} start from a checkpoint (detector_ckpt_*.pt) instead")
+    if freeze_through is not None:
+        from tracker.training.nets.nanodet import Backbone
+        if backbone != "nanodet" or not pretrained:
+            raise UserError("--freeze-through keeps part of NanoDet's COCO weights: it needs --backbone nanodet "
+                            "(and its weights, not --no-pretrained)")
+        if freeze_through not in Backbone.STAGES:
+            raise UserError(f"--freeze-through must be one of {', '.join(Backbone.STAGES)}, not '{freeze_through}'")
     if max_steps is not None and not (isinstance(max_steps, int) and max_steps >= 1):
         raise UserError(f"the step budget must be a whole number of at least 1, not {max_steps}")
     if not 0.0 <= ema < 1.0:
@@ -538,7 +551,10 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     C, S = len(spec.classes), spec.stride
     oh, ow = math.ceil(input_h / S), math.ceil(input_w / S)
     model = make_detector(C, width, backbone, pretrained)
+    if freeze_through is not None:
+        model.trunk.freeze(freeze_through)
     n_params = sum(p.numel() for p in model.parameters())
+    n_trained = sum(p.numel() for p in model.parameters() if p.requires_grad)
     opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
     ckpt = work / f"detector_ckpt_{key}.pt"
     state = {"step": 0, "seconds": 0.0, "history": []}
@@ -550,7 +566,8 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     # Not --minutes: a larger budget trains a finished run on (docs/experiments/)
     recipe = {"batch": batch, "lr": lr, "seed": seed, "occlusion": occlusion, "paste_objects": paste_objects,
               **RECIPE_ADDED, "boxes": box_kind, "frozen_batchnorm": frozen, "colour": colour, "ema": ema,
-              "backbone": backbone, "pretrained": pretrained if backbone != "plain" else False}
+              "backbone": backbone, "pretrained": pretrained if backbone != "plain" else False,
+              "freeze_through": freeze_through}
     if cutouts:
         recipe.update(cutouts=cutout_set, cutout_share=CUTOUT_SHARE if cutout_share is None else cutout_share)
     if ckpt.is_file():
@@ -587,7 +604,8 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     budget = 60.0 * minutes
     weights = {"plain": "", "nanodet": ", COCO weights"}.get(backbone, ", ImageNet weights") if pretrained else ""
     log(f"detector ({backbone}{weights}): "
-        f"{n_params / 1e6:.2f} M parameters, {len(tr)} train / {len(va)} validation images, "
+        f"{n_params / 1e6:.2f} M parameters"
+        f"{f' ({n_trained / 1e6:.2f} M trained, frozen through {freeze_through})' if freeze_through else ''}, {len(tr)} train / {len(va)} validation images, "
         f"{input_w}x{input_h} input, budget {f'{max_steps} steps' if max_steps is not None else f'{minutes:.0f} min'}, "
         f"{precision} training passes on {device}")
     if max_steps is not None:
