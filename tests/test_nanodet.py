@@ -124,6 +124,37 @@ def test_a_detector_trains_on_the_coco_trunk_and_exports(tiny_bundle, tmp_path, 
     assert not torch.equal(coco.trunk.state_dict()[w], control.trunk.state_dict()[w])  # COCO's, not random
 
 
+def test_a_detector_trains_with_its_early_stages_frozen(tiny_bundle, tmp_path):
+    """train-detector --freeze-through stage2: the stem through stage 2 keep COCO's weights to the
+    bit, stage 3 and the heads move; the manifest says what was frozen; a resumed run must ask for
+    the same; the option needs NanoDet's weights."""
+    import shutil
+    from tracker.core.errors import UserError
+    from tracker.core.paths import work_dir
+    from tracker.training.detector_train import train_detector
+    from tracker.training.nets.detector import CenterNetCoco
+    root = tmp_path / "lmo"
+    shutil.copytree(tiny_bundle, root)
+    split = tiny_bundle.parent / "split"
+    kw = dict(batch=2, input_w=128, input_h=96, backbone="nanodet", log=lambda *a: None)
+    d = train_detector(split, root, max_steps=3, freeze_through="stage2", **kw)
+    assert d["training"]["freeze_through"] == "stage2" and d["training"]["steps"] == 3
+    (ckpt,) = work_dir(root).glob("detector_ckpt_*.pt")
+    trained = torch.load(ckpt, weights_only=True)["model"]
+    coco = CenterNetCoco(len(d["classes"])).state_dict()
+    for k, v in coco.items():
+        if k.startswith(("trunk.backbone.stem.", "trunk.backbone.stage1.", "trunk.backbone.stage2.")):
+            assert torch.equal(trained[k], v), k
+    assert not torch.equal(trained["trunk.backbone.stage3.in_conv.weight"], coco["trunk.backbone.stage3.in_conv.weight"])
+    with pytest.raises(UserError, match="a run with --freeze-through stage2: rerun"):
+        train_detector(split, root, max_steps=4, **kw)  # the checkpoint's run froze stage 2
+    for bad in (dict(kw, backbone="plain"), dict(kw, pretrained=False)):
+        with pytest.raises(UserError, match="--freeze-through keeps part of NanoDet"):
+            train_detector(split, root, max_steps=1, freeze_through="stage2", **bad)
+    with pytest.raises(UserError, match="must be one of stem, stage1"):
+        train_detector(split, root, max_steps=1, freeze_through="neck", **kw)
+
+
 def test_missing_or_altered_weights_are_one_line_errors(tmp_path, monkeypatch):
     from tracker.core.errors import UserError
     from tracker.training.nets import nanodet
