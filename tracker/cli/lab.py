@@ -134,6 +134,28 @@ def cmd_compare(args) -> int:
     return 0
 
 
+def cmd_oracle(args) -> int:
+    from tracker.core.bop import check_output_file, write_json
+    from tracker.evaluation.oracle import oracle_swaps
+    check_output_file(args.json, "--json")
+    r = oracle_swaps(args.results, args.data, args.models, models_info=args.models_info,
+                     n_boot=args.bootstrap, log=lambda m: print(m, file=sys.stderr))
+    write_json(args.json, r)
+    a = r["as_estimated"]
+    figs = ("add_recall", "ar_mssd", "ar_mspd")
+    print(f"{'':>18}" + "".join(f"{h:>30}" for h in ("ADD(I)", "AR_MSSD", "AR_MSPD", "mean")))
+    print(f"{'as estimated':>18}" + "".join(f"{a[f] or 0:>30.3f}" for f in figs)
+          + f"{sum(a[f] or 0 for f in figs) / 3:>30.3f}")
+    for part, v in r["swaps"].items():
+        c = v["compare"]["figures"]
+        print(f"{'true ' + part:>18}" + "".join(
+            f"{c[f]['b']:>8.3f} {c[f]['diff']:+.3f} [{c[f]['ci'][0]:+.3f}, {c[f]['ci'][1]:+.3f}]"
+            for f in (*figs, "mean")))
+    print(f"(each part of every pose replaced by the ground truth's; B - A with its paired-bootstrap 95 % "
+          f"interval over frames)\nwrote {args.json}")
+    return 0
+
+
 def add_commands(sub, REPO) -> None:
     """The research tools, each a sub-parser of ``sub`` (the ``lab`` group)."""
     s = sub.add_parser("join-splits", help="one training split made of several 'synth' splits (linked)")
@@ -248,6 +270,16 @@ def add_commands(sub, REPO) -> None:
     s.add_argument("--bootstrap", type=positive_int, default=10000, metavar="N", help="resamples (default 10000)")
     s.add_argument("--seed", type=nonnegative_int, default=0)
     s.set_defaults(func=cmd_compare)
+
+    s = sub.add_parser("oracle", help="what limits a set of poses: each part (rotation, translation, depth, viewing "
+                                      "ray) replaced by the ground truth's in turn, scored and compared")
+    s.add_argument("--results", required=True, help="BOP results CSV (e.g. eval's --bop-csv)")
+    s.add_argument("--data", required=True, help="BOP scene folder with ground truth")
+    s.add_argument("--models", required=True, help="folder of obj_NNNNNN.ply")
+    s.add_argument("--models-info", help="models_info.json (default: the models folder's, else computed)")
+    s.add_argument("--json", required=True, help="JSON to write: each variant's metrics and comparison")
+    s.add_argument("--bootstrap", type=positive_int, default=10000, metavar="N", help="resamples (default 10000)")
+    s.set_defaults(func=cmd_oracle)
 
     s = sub.add_parser("models-info", help="compute BOP models_info.json (diameter, box, symmetries)")
     s.add_argument("--models", required=True, help="folder of obj_NNNNNN.ply")
