@@ -26,7 +26,8 @@ def three_frames(data_dir, tmp_path_factory):
     return dst
 
 
-def _truth(scene, R_turn=np.eye(3), depth=1.0):
+def _truth(scene, R_turn=None, depth=1.0):
+    R_turn = np.eye(3) if R_turn is None else R_turn
     return [Estimate(0, i, g.obj_id, 1.0, np.asarray(g.R) @ R_turn, np.asarray(g.t, float).reshape(3) * depth)
             for i in scene.im_ids for g in scene.gt[i]]
 
