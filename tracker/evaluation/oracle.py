@@ -27,7 +27,9 @@ SWAPS = {
 
 def swap_with_truth(estimates: list[Estimate], scene, part: str) -> list[Estimate]:
     """``estimates`` with ``part`` (a key of :data:`SWAPS`) taken from the ground truth of
-    ``scene`` (estimates of another scene id than their image's scene are the caller's to drop)."""
+    ``scene`` (estimates of another scene id than their image's scene are the caller's to drop).
+    An estimate at or behind the camera's plane has no viewing ray to keep: ``depth`` gives it
+    the true translation."""
     if part not in SWAPS:
         raise UserError(f"unknown part '{part}' (choose from {', '.join(SWAPS)})")
     out = []
