@@ -114,10 +114,10 @@ def add_train_detector(sub, REPO) -> None:
                         "COCO-pretrained trunk and neck (tracker/training/pretrained/NOTICE.md) under full-width heads")
     s.add_argument("--no-pretrained", action="store_true",
                    help="with --backbone lite* or nanodet: the same network from random weights (the control)")
-    s.add_argument("--freeze-through", choices=("stem", "stage1", "stage2", "stage3", "stage4"), default=None,
-                   metavar="STAGE", help="with --backbone nanodet: keep the COCO backbone's weights from its stem "
-                        "through this stage (stage2: stride 8, stage3: stride 16; no backward pass through it) "
-                        "and train the rest")
+    s.add_argument("--freeze-through", default=None, metavar="STAGE",
+                   help="with --backbone nanodet: keep the COCO backbone's weights from its stem through this "
+                        "stage (stem, stage1 .. stage4; stage2: stride 8, stage3: stride 16; no backward pass "
+                        "through it) and train the rest")
     s.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto",
                    help="where the detector trains: a CUDA GPU where torch sees one (auto), or the CPU")
     add_precision(s)
