@@ -159,6 +159,11 @@ def test_build_refuses_bad_input_in_one_line(small, tmp_path):
         bb.build(bb.Recipe(models=str(src), minutes=0.05, objects=[1, 7]), tmp_path / "out2", log=lambda m: None)
     with pytest.raises(UserError, match="--head-sets must be"):
         bb.build(bb.Recipe(models=str(src), minutes=0.05, head_sets=0), tmp_path / "out3", log=lambda m: None)
+    for encoder, size, step in (("plain", 70, 16), ("lite0", 48, 32)):  # before any rendering
+        with pytest.raises(UserError, match=f"--encoder {encoder} takes crops a multiple of {step} pixels"):
+            bb.build(bb.Recipe(models=str(src), minutes=0.05, encoder=encoder, size=size), tmp_path / "out4",
+                     log=lambda m: None)
+        assert not (tmp_path / "out4.work").exists()
     bare = tmp_path / "bare"  # a bundle made by 'train', not 'build'
     shutil.copytree(Path(__file__).parents[1] / "models" / "lmo", bare)
     from tracker.core.bundle import update_manifest

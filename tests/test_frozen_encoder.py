@@ -102,4 +102,6 @@ def test_a_crop_size_the_trunk_cannot_take_is_refused_before_training(data_dir, 
     from tracker.training.train import train_bundle
     with pytest.raises(UserError, match="multiple of 32"):
         train_bundle(tmp_path / "nowhere", tmp_path / "b", size=48, encoder="nanodet")
+    with pytest.raises(UserError, match="multiple of 16"):  # the plain trunk would reconstruct 64 of 70
+        train_bundle(tmp_path / "nowhere", tmp_path / "b", size=70, encoder="plain")
     assert not (tmp_path / "b.work").exists()

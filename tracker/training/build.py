@@ -231,6 +231,9 @@ def build(recipe: Recipe, out_dir, log=print, cluster=None) -> dict:
     mesh_files(recipe.models)  # a bad --models fails before anything is written
     from tracker.training.train import require_torch
     require_torch()  # and so does a missing 'train' extra, before minutes of rendering
+    from tracker.training.nets.autoencoder import crop_size_problem
+    if crop_size_problem(recipe.encoder, recipe.size):  # and a crop the encoder cannot take
+        raise UserError(crop_size_problem(recipe.encoder, recipe.size))
     root = work_dir(out) / "build"
     root.mkdir(parents=True, exist_ok=True)
     state = _State(root / "state.json")

@@ -351,7 +351,8 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
     torch = require_torch()
     from tracker.training.crops import CropSet, build_training_crops, crops_cache_path, train_val_split
     from tracker.core.meshes import load_models
-    from tracker.training.nets.autoencoder import ENCODERS, FROZEN, FROZEN_THROUGH, METHODS, PRETRAINED, AutoEncoder
+    from tracker.training.nets.autoencoder import (ENCODERS, FROZEN, FROZEN_THROUGH, METHODS, AutoEncoder,
+                                                   crop_size_problem)
     from tracker.training.nets.fit import (CachedInputs, cache_frozen_outputs, encode_all, onehot, to_tensor,
                                            train_autoencoder)
     from tracker.training.nets.precision import resolve, resolve_device
@@ -359,8 +360,8 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
         raise UserError(f"unknown method '{method}' (choose from {', '.join(METHODS)})")
     if encoder not in ENCODERS:
         raise UserError(f"unknown encoder '{encoder}' (choose from {', '.join(ENCODERS)})")
-    if encoder in PRETRAINED + FROZEN and size % 32:
-        raise UserError(f"--encoder {encoder} takes crops a multiple of 32 pixels a side (e.g. --size 128), not {size}")
+    if crop_size_problem(encoder, size):
+        raise UserError(crop_size_problem(encoder, size))
     from tracker.training.nets import distributed as dd
     device = resolve_device(device)
     rank, n_proc = dd.init_from_env(device)  # under torchrun: several processes train the autoencoder

@@ -37,6 +37,17 @@ PRETRAINED = ("lite0", "lite1", "lite2")
 FROZEN_THROUGH = {"nanodet": 3, "nanodet32": 4}
 FROZEN = tuple(FROZEN_THROUGH)
 ENCODERS = ("plain", "resnet") + PRETRAINED + FROZEN
+
+
+def crop_size_problem(encoder: str, size) -> str | None:
+    """Why the ``encoder`` trunk cannot take square crops of ``size`` pixels (None: it can): the
+    plain and ResNet trunks halve the crop four times, the pretrained ones five (a plain trunk
+    given 70 pixels would reconstruct 64 and the loss would compare unequal images)."""
+    step = 32 if encoder in PRETRAINED + FROZEN else 16
+    if isinstance(size, bool) or not isinstance(size, int) or size < step or size % step:
+        return (f"--encoder {encoder} takes crops a multiple of {step} pixels a side "
+                f"(e.g. --size {128 if step == 32 else 64}), not {size}")
+    return None
 TRUNK_REDUCED = 128  # channels of the pretrained trunk's features after the 1x1 conv
 
 
