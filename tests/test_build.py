@@ -130,13 +130,21 @@ def test_build_makes_a_bundle_resumes_and_records_its_recipe(small, tmp_path, mo
     assert "On held-out renders" in text and "| detector |" in text
     assert set(s["stages"]["check"]) >= {"gt", "detector"}
     assert not any(p.name.startswith("split") for p in out.iterdir())  # intermediates stay in the work folder
-    again = bb.recipe_from_manifest(out)
-    assert again == recipe
+    notes = []
+    again = bb.recipe_from_manifest(out, log=notes.append)
+    assert again == recipe and notes == []  # every artefact is the build's own: nothing to say
     for f in src.iterdir():  # the same meshes with new times (a fresh copy): still nothing to redo
         os.utime(f, (f.stat().st_atime + 3600, f.stat().st_mtime + 3600))
     logs = []
     bb.build(again, out, log=logs.append)  # --from-manifest on a finished build: nothing to redo
     assert sum("done before (cached)" in m for m in logs) == 7
+    from tracker.core.bundle import update_manifest
+
+    def other_heads(manifest, folder):  # as refit-heads or join-heads would leave it
+        (folder / "pose_head.json").write_text((folder / "pose_head.json").read_text() + "\n")
+    update_manifest(out, other_heads)
+    bb.recipe_from_manifest(out, log=notes.append)
+    assert len(notes) == 1 and "'s pose_head came from another run than its build" in notes[0], notes
     # another seed renders new splits into the same folders: what was cut from the old ones and
     # the old detector's checkpoint are removed (gigabytes at full size), never loaded or resumed
     work = tmp_path / "models" / "mine.work"

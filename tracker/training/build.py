@@ -430,8 +430,23 @@ def _record_recipe(out: Path, root: Path, recipe: Recipe, planned: dict, stages:
         write_build_report(folder, root, stages, recipe, planned, stages["models"]["objects"])
         manifest.extra["build"] = {"recipe": asdict(recipe), "plan": planned, "versions": versions(),
                                    "stage_seconds": {k: v.get("seconds") for k, v in stages.items()},
-                                   **executor_record(stages)}
+                                   **executor_record(stages), "artefacts_sha256": built_artefacts(manifest)}
     update_manifest(out, change)
+
+
+def built_artefacts(manifest) -> dict:
+    """SHA-256 of each artefact (encoder, pose head, codebook, detector) as the build wrote it:
+    ``build --from-manifest`` names those replaced since (a detector joined in, heads refitted)."""
+    return {role: manifest.file_sha256(role) for role in sorted(manifest.artefacts)
+            if role != "models_info" and manifest.file_sha256(role)}
+
+
+def changed_since_build(manifest) -> list[str]:
+    """The artefacts whose files are not the ones the bundle's build wrote (empty for a bundle
+    built before the build recorded them)."""
+    built = manifest.extra.get("build", {}).get("artefacts_sha256") or {}
+    return [role for role, sha in sorted(built.items()) if manifest.file_sha256(role) != sha] + \
+        [role for role in sorted(manifest.artefacts) if built and role not in built and role != "models_info"]
 
 
 def executor_record(stages: dict) -> dict:
@@ -459,8 +474,8 @@ def _written(open_bundle, out: Path, stage: str):
 def recipe_from_manifest(bundle_dir, log=None) -> Recipe:
     """``build --from-manifest``: the recipe a built bundle records. Names set on the bundle
     after its build (``set_object_names``) join the recipe, so the rebuild keeps them; a part
-    that came from another run (a detector with ``provenance``) is said, since the recipe
-    rebuilds its own."""
+    that came from another run (a detector with ``provenance``, or any artefact whose hash is not
+    the one the build recorded) is said, since the recipe rebuilds its own."""
     from tracker.core.bundle import open_bundle
     b = open_bundle(bundle_dir)
     rec = b.manifest.extra.get("build", {}).get("recipe")
@@ -470,8 +485,11 @@ def recipe_from_manifest(bundle_dir, log=None) -> Recipe:
     if b.manifest.extra.get("object_names"):  # renamed after its build: the names it has now
         rec["names"] = {str(o.id): o.name for o in b.manifest.objects}
     det = b.manifest.detector or {}
-    if det.get("provenance") and log is not None:
-        p = det["provenance"]
-        log(f"build: note: {bundle_dir}'s detector came from another run ({p.get('note', p)}); this recipe trains "
-            f"its own detector, so the rebuilt bundle's differs")
+    changed = changed_since_build(b.manifest)
+    if log is not None and (det.get("provenance") or changed):
+        p = det.get("provenance") or {}
+        why = f" ({p.get('note', p)})" if p else ""
+        parts = ", ".join(changed) if changed else "detector"
+        log(f"build: note: {bundle_dir}'s {parts} came from another run than its build{why}; this recipe "
+            f"makes its own, so the rebuilt bundle's differ")
     return Recipe.from_dict(rec)
