@@ -1,4 +1,5 @@
 """The CLI as a user meets it: exit codes and one-line errors, no tracebacks."""
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -72,6 +73,23 @@ def test_bad_bundle_and_bad_source_are_one_line_errors(tmp_path, data_dir):
         p = run("track", "--source", source, "--max-frames", 1, "--out", tmp_path / "run")
         assert_one_line_error(p)
         assert p.stderr.strip().startswith("error:") and p.stderr.strip().count("\n") == 0, p.stderr
+
+
+def test_a_detector_file_altered_or_missing_is_a_one_line_error(tmp_path, data_dir):
+    b = tmp_path / "lmo"
+    shutil.copytree(REPO / "models" / "lmo", b)
+    with open(b / "detector.onnx", "ab") as f:
+        f.write(b"\0")
+    args = ("--model", b, "--data", data_dir / "lmo" / "dev", "--boxes", "detector", "--max-frames", 1,
+            "--json", tmp_path / "m.json")
+    p = run("eval", *args)
+    assert_one_line_error(p)
+    assert "detector.onnx" in p.stderr and "SHA-256" in p.stderr
+    (b / "detector.onnx").unlink()
+    p = run("track", "--source", data_dir / "lmo" / "dev", "--model", b, "--max-frames", 1, "--out", tmp_path / "r")
+    assert_one_line_error(p)
+    assert "detector.onnx" in p.stderr and "missing" in p.stderr
+    assert not (tmp_path / "m.json").exists()
 
 
 def test_calibrate_command(data_dir, tmp_path):
