@@ -37,6 +37,23 @@ def test_a_uniform_gain_is_exact_and_kept(tmp_path):
     assert r["verdict"]["keep_b"] and r["n_frames"] == 30 and r["n_instances"] == 90
 
 
+def test_the_command_writes_the_comparison_and_prints_the_verdict(tmp_path):
+    import subprocess
+    import sys
+    a = _write(tmp_path / "a.csv", _rows(30, 3, add=0, mssd=0.2, mspd=0.5))
+    b = _write(tmp_path / "b.csv", _rows(30, 3, add=1, mssd=0.3, mspd=0.5))
+    run = lambda *args: subprocess.run([sys.executable, str(REPO / "app.py"), "lab", "compare", *map(str, args)],  # noqa: E731
+                                       capture_output=True, text=True, timeout=300, cwd=REPO)
+    p = run(a, b, "--json", tmp_path / "c.json", "--bootstrap", 500)
+    assert p.returncode == 0, p.stderr
+    r = json.loads((tmp_path / "c.json").read_text())
+    assert r["figures"]["add_recall"]["diff"] == pytest.approx(1.0) and r["verdict"]["keep_b"]
+    assert "keep B" in p.stdout and "wrote" in p.stdout
+    p = run(a, tmp_path / "nope.csv", "--json", tmp_path / "d.json")
+    assert p.returncode != 0 and "Traceback" not in p.stderr and len(p.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "d.json").exists()
+
+
 def test_a_gain_in_half_the_frames_has_an_interval_around_it():
     a = _rows(200, 2)
     b = _rows(200, 2, add=lambda f: float(f % 2), mssd=lambda f: float(f % 2), mspd=lambda f: float(f % 2))
