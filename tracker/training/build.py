@@ -232,8 +232,8 @@ def build(recipe: Recipe, out_dir, log=print, cluster=None) -> dict:
     from tracker.training.train import require_torch
     require_torch()  # and so does a missing 'train' extra, before minutes of rendering
     from tracker.training.nets.autoencoder import crop_size_problem
-    if crop_size_problem(recipe.encoder, recipe.size):  # and a crop the encoder cannot take
-        raise UserError(crop_size_problem(recipe.encoder, recipe.size))
+    if problem := crop_size_problem(recipe.encoder, recipe.size):  # and a crop the encoder cannot take
+        raise UserError(problem)
     root = work_dir(out) / "build"
     root.mkdir(parents=True, exist_ok=True)
     state = _State(root / "state.json")
@@ -491,5 +491,5 @@ def recipe_from_manifest(bundle_dir, log=None) -> Recipe:
         why = f" ({p.get('note', p)})" if p else ""
         parts = ", ".join(changed) if changed else "detector"
         log(f"build: note: {bundle_dir}'s {parts} came from another run than its build{why}; this recipe "
-            f"makes its own, so the rebuilt bundle's differ")
+            f"makes its own, so those of the rebuilt bundle differ")
     return Recipe.from_dict(rec)

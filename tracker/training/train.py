@@ -360,8 +360,8 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
         raise UserError(f"unknown method '{method}' (choose from {', '.join(METHODS)})")
     if encoder not in ENCODERS:
         raise UserError(f"unknown encoder '{encoder}' (choose from {', '.join(ENCODERS)})")
-    if crop_size_problem(encoder, size):
-        raise UserError(crop_size_problem(encoder, size))
+    if problem := crop_size_problem(encoder, size):
+        raise UserError(problem)
     from tracker.training.nets import distributed as dd
     device = resolve_device(device)
     rank, n_proc = dd.init_from_env(device)  # under torchrun: several processes train the autoencoder

@@ -37,6 +37,7 @@ PRETRAINED = ("lite0", "lite1", "lite2")
 FROZEN_THROUGH = {"nanodet": 3, "nanodet32": 4}
 FROZEN = tuple(FROZEN_THROUGH)
 ENCODERS = ("plain", "resnet") + PRETRAINED + FROZEN
+TRUNK_REDUCED = 128  # channels of the pretrained trunk's features after the 1x1 conv
 
 
 def crop_size_problem(encoder: str, size) -> str | None:
@@ -48,7 +49,6 @@ def crop_size_problem(encoder: str, size) -> str | None:
         return (f"--encoder {encoder} takes crops a multiple of {step} pixels a side "
                 f"(e.g. --size {128 if step == 32 else 64}), not {size}")
     return None
-TRUNK_REDUCED = 128  # channels of the pretrained trunk's features after the 1x1 conv
 
 
 class CondConv(nn.Module):
