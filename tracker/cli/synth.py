@@ -33,11 +33,10 @@ def add_synth(sub, REPO) -> None:
     s.add_argument("--no-camera-effects", dest="camera_effects", action="store_false",
                    help="no exposure, contrast, saturation, white balance, blur or sensor noise (on by default; "
                         "the same scenes either way)")
-    s.add_argument("--distractors", choices=["plain", "hard", "household", "dense"], default="plain",
+    s.add_argument("--distractors", choices=["plain", "hard", "household"], default="plain",
                    help="plain: 0-5 random primitives per image (as data made before); hard: 2-8 primitives "
                         "textured from the photos and tinted, half the time with the targets' colours; "
-                        "household: as hard, half of the shapes mugs, cups and bottles; dense: as hard, 15-30 "
-                        "per image, scattered over the table around the targets")
+                        "household: as hard, half of the shapes mugs, cups and bottles")
     s.add_argument("--occluders", metavar="DIR",
                    help="folder of household meshes (.ply/.obj, mm, vertex colours; scripts/debian_assets.py "
                         "furniture): distractors and occluders drawn from it in their own colours, as many as "

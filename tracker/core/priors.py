@@ -53,12 +53,10 @@ def resting_offset(vertices: np.ndarray, R_obj_w: np.ndarray) -> float:
 
 
 def sample_table_scene(rng: np.random.Generator, vertices: list[np.ndarray], radii: list[float],
-                       prior: TablePrior = TablePrior(), spreads: list[float] | None = None):
+                       prior: TablePrior = TablePrior()):
     """Poses of objects standing on one table seen by one camera.
 
-    ``vertices``/``radii``: per object to place (targets first, then distractors); ``spreads``:
-    per object, how far from the look-at point it may stand (mm; default the prior's
-    ``spread_mm`` for all: the same draws, scaled).
+    ``vertices``/``radii``: per object to place (targets first, then distractors).
     Returns a list of (R_m2c, t_m2c) in the same order, and the table's pose in the camera
     (R_w2c, t_w2c: world z = 0 is the table's surface, z up).
     """
@@ -73,10 +71,10 @@ def sample_table_scene(rng: np.random.Generator, vertices: list[np.ndarray], rad
     t_w2c = -R_w2c @ eye
     placed: list[tuple[np.ndarray, float]] = []
     poses = []
-    for v, r, spread in zip(vertices, radii, spreads or [prior.spread_mm] * len(vertices)):
+    for v, r in zip(vertices, radii):
         # scatter on the table, avoiding deep interpenetration (a few tries, then accept)
         for _ in range(20):
-            xy = rng.uniform(-spread, spread, 2)
+            xy = rng.uniform(-prior.spread_mm, prior.spread_mm, 2)
             if all(np.linalg.norm(xy - p) > 0.7 * (r + pr) for p, pr in placed):
                 break
         placed.append((xy, r))

@@ -45,15 +45,10 @@ DEPTH_SCALE = 0.1  # mm per unit of the written depth PNGs (up to 6.5 m)
 DISTRACTOR_BASE = 100000  # renderer ids of distractor meshes
 HARD_DISTRACTORS_PER_IMAGE = (2, 8)
 # per style: how many primitives and how many household shapes (mugs, cups, bottles)
-DISTRACTOR_SETS = {"plain": (12, 0), "hard": (36, 0), "household": (18, 18), "dense": (36, 0)}
+DISTRACTOR_SETS = {"plain": (12, 0), "hard": (36, 0), "household": (18, 18)}
 DISTRACTOR_STYLES = tuple(DISTRACTOR_SETS)
 LIGHTING_STYLES = ("camera", "overhead")
-PHOTO_DISTRACTORS = ("hard", "household", "dense")  # textured from the photos, tinted
-# per photo style: distractors per image; "dense" fills the table around the targets with clutter
-# (Hinterstoisser et al. 2019: a background of rendered distractors, not photos alone)
-PHOTO_DISTRACTORS_PER_IMAGE = {"hard": HARD_DISTRACTORS_PER_IMAGE, "household": HARD_DISTRACTORS_PER_IMAGE,
-                               "dense": (15, 30)}
-DENSE_SPREAD = 2.5  # "dense": the distractors scatter this many times farther than the targets
+PHOTO_DISTRACTORS = ("hard", "household")  # textured from the photos, tinted, 2-8 per image
 SHADOW_POINTS = 400  # about this many of an object's vertices outline its shadow (randomise.cast_shadows)
 
 DEFAULT_MESH_FACES = SYNTH_FACES  # SynthConfig.mesh_faces
@@ -92,8 +87,7 @@ class SynthConfig:
     # "plain": 12 primitives with noisy random colours, 0-5 per image (data made before);
     # "hard": 36 primitives textured from the background photos, 2-8 per image, tinted per
     # image, half the time with a target's colour (real clutter: yellow cups, white boxes);
-    # "household": as "hard", with 18 of the 36 shapes mugs, cups and bottles; "dense": as "hard",
-    # 15-30 per image scattered over the table 2.5 times as far as the targets (clutter all around)
+    # "household": as "hard", with 18 of the 36 shapes mugs, cups and bottles
     distractors: str = "plain"
     # a folder of household meshes (.ply/.obj, mm, vertex colours; scripts/debian_assets.py
     # furniture): the distractors and occluders are drawn from it instead of the style's shapes,
@@ -205,15 +199,12 @@ def _sample_instances(rng, cfg: SynthConfig):
     else:
         n_t = min(len(obj_ids), n_t)
         targets = [int(x) for x in rng.choice(obj_ids, n_t, replace=False)]
-    lo_d, hi_d = PHOTO_DISTRACTORS_PER_IMAGE.get(cfg.distractors, cfg.distractors_per_image)
+    lo_d, hi_d = HARD_DISTRACTORS_PER_IMAGE if cfg.distractors in PHOTO_DISTRACTORS else cfg.distractors_per_image
     n_d = int(rng.integers(lo_d, hi_d + 1))
     dis = [DISTRACTOR_BASE + int(x) for x in rng.integers(0, _W["n_dis"], n_d)]
     ids = targets + dis
     if cfg.prior == "table":
-        spread = priors.TablePrior().spread_mm
-        spreads = [spread] * n_t + [spread * DENSE_SPREAD] * n_d if cfg.distractors == "dense" else None
-        poses, table = priors.sample_table_scene(rng, [_W["hull"][i] for i in ids], [_W["radius"][i] for i in ids],
-                                                 spreads=spreads)
+        poses, table = priors.sample_table_scene(rng, [_W["hull"][i] for i in ids], [_W["radius"][i] for i in ids])
     else:
         poses, table = priors.sample_sphere_scene(rng, [_W["radius"][i] for i in ids], K, (cfg.width, cfg.height)), None
     inst = [(i, R, t) for i, (R, t) in zip(ids, poses)]
