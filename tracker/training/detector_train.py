@@ -520,7 +520,9 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     bundle = open_bundle(bundle_dir)  # verified before anything is changed
     device = prec.resolve_device(device)
     rank, n_proc = dd.init_from_env(device)  # under torchrun: several processes share each batch
+    from tracker.training.nets.memory import keep_freed_memory
     torch.set_num_threads(threads if n_proc == 1 else max(1, threads // n_proc))
+    keep_freed_memory()  # no page faults for every step's buffers (nets/memory.py)
     if rank != 0:
         log = lambda *a, **k: None  # noqa: E731  (the first process reports)
     torch.manual_seed(seed)

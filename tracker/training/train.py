@@ -365,7 +365,9 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
     from tracker.training.nets import distributed as dd
     device = resolve_device(device)
     rank, n_proc = dd.init_from_env(device)  # under torchrun: several processes train the autoencoder
+    from tracker.training.nets.memory import keep_freed_memory
     torch.set_num_threads(2 if n_proc == 1 else max(1, (os.cpu_count() or 2) // n_proc))
+    keep_freed_memory()  # no page faults for every step's buffers (nets/memory.py)
     if rank != 0:
         log = lambda *a, **k: None  # noqa: E731  (the first process reports)
     precision = resolve(precision, device)
