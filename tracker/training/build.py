@@ -445,8 +445,8 @@ def changed_since_build(manifest) -> list[str]:
     """The artefacts whose files are not the ones the bundle's build wrote (empty for a bundle
     built before the build recorded them)."""
     built = manifest.extra.get("build", {}).get("artefacts_sha256") or {}
-    return [role for role, sha in sorted(built.items()) if manifest.file_sha256(role) != sha] + \
-        [role for role in sorted(manifest.artefacts) if built and role not in built and role != "models_info"]
+    now = built_artefacts(manifest) if built else {}
+    return sorted(role for role in built.keys() | now.keys() if built.get(role) != now.get(role))
 
 
 def executor_record(stages: dict) -> dict:
