@@ -168,7 +168,8 @@ def test_outputs_that_cannot_be_written_are_refused_before_the_work(tmp_path, da
               "--json", tmp_path / "folder"], "is a folder"),
             (["synth", "--models", data_dir / "lmo" / "models", "--out", tmp_path / "s", "--images", 2,
               "--preview", tmp_path / "folder"], "name a .png or .jpg"),
-            (["lab", "pack-scene", "--data", dev, "--out", dev], "is the scene itself")):
+            (["lab", "pack-scene", "--data", dev, "--out", dev], "is the scene itself"),
+            (["lab", "resize-scene", "--data", dev, "--out", dev, "--size", 320, 240], "is the scene itself")):
         p = run(*args, timeout=60)
         assert_one_line_error(p)
         assert said in p.stderr, p.stderr

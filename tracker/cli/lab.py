@@ -91,6 +91,14 @@ def cmd_pack_scene(args) -> int:
     return 0
 
 
+def cmd_resize_scene(args) -> int:
+    from tracker.evaluation.scene_copy import resize_scene
+    r = resize_scene(args.data, args.out, *args.size)
+    left = f" (not copied: {', '.join(r['left_out'])}/)" if r["left_out"] else ""
+    print(f"wrote {r['out']}: {r['frames']} frames at {r['size'][0]}x{r['size'][1]}, intrinsics scaled{left}")
+    return 0
+
+
 def cmd_preview(args) -> int:
     from tracker.evaluation.preview import render_gt_overlays
     out = Path(args.out) if args.out else _default_run_dir("preview")
@@ -244,6 +252,13 @@ def add_commands(sub, REPO) -> None:
     s.add_argument("--quality", type=jpeg_quality, default=95, help="JPEG quality of the frames")
     s.add_argument("--fps", type=positive_float, default=10.0, help="frame rate written into the video")
     s.set_defaults(func=cmd_pack_scene)
+
+    s = sub.add_parser("resize-scene", help="a BOP scene read out at another resolution: frames resized, "
+                                            "intrinsics scaled, poses kept (eval it like the original)")
+    s.add_argument("--data", required=True, help="BOP scene folder")
+    s.add_argument("--out", required=True, help="the copy's folder")
+    s.add_argument("--size", type=positive_int, nargs=2, required=True, metavar=("W", "H"), help="the copy's frame size")
+    s.set_defaults(func=cmd_resize_scene)
 
     s = sub.add_parser("preview", help="render a BOP scene's ground-truth poses over its frames")
     s.add_argument("--data", required=True, help="BOP scene folder")
