@@ -64,6 +64,11 @@ def _mutate(path, change):
      "not finite"),
     ("scene_gt.json", lambda d: {**d, "3": 5}, "expected a list"),
     ("scene_gt_info.json", lambda d: {"3": 5}, "expected a list"),
+    ("scene_gt_info.json", lambda d: {"3": [{"bbox_visib": [1, 2, 3]}]}, "'bbox_visib' must be x, y, width, height"),
+    ("scene_gt_info.json", lambda d: {"3": [{"bbox_obj": [1, 2, -3, 4]}]}, "'bbox_obj' must be"),
+    ("scene_gt_info.json", lambda d: {"3": [{"visib_fract": float("nan")}]}, "'visib_fract' must be a number in"),
+    ("scene_gt_info.json", lambda d: {"3": [{"visib_fract": "high"}]}, "'visib_fract' must be a number in"),
+    ("scene_gt_info.json", lambda d: {"3": [{"px_count_visib": -1}]}, "'px_count_visib' must be a pixel count"),
 ])
 def test_malformed_scene_files_are_refused(tmp_path, data_dir, file, change, match):
     dst = tmp_path / "scene"
@@ -85,6 +90,42 @@ def test_an_image_smaller_than_its_camera_is_refused(tmp_path, data_dir):
     assert scene.read_rgb(8).shape == (480, 640, 3)
     with pytest.raises(UserError, match="image 3 is 320x240 but its cam_K puts the principal point at"):
         scene.read_rgb(3)
+
+
+def test_bop_s_box_of_nothing_is_a_valid_info_entry(tmp_path, data_dir):
+    dst = tmp_path / "scene"
+    shutil.copytree(data_dir / "lmo" / "dev", dst)
+    (dst / "scene_gt_info.json").write_text(json.dumps({"3": [{"bbox_visib": [-1, -1, -1, -1], "visib_fract": 0.0}]}))
+    assert bop.load_scene(dst).gt[3][0].info["bbox_visib"] == [-1, -1, -1, -1]
+
+
+def test_ground_truth_of_a_missing_frame_is_refused(tmp_path, data_dir):
+    dst = tmp_path / "scene"
+    shutil.copytree(data_dir / "lmo" / "dev", dst)
+    (dst / "rgb" / "000003.png").unlink()
+    cams = json.loads((dst / "scene_camera.json").read_text())
+    del cams["3"]
+    (dst / "scene_camera.json").write_text(json.dumps(cams))
+    with pytest.raises(UserError, match=r"ground truth for image\(s\) \[3\] with no frame in rgb/"):
+        bop.load_scene(dst)
+
+
+def test_frames_of_two_sizes_are_named(tmp_path, data_dir):
+    import cv2
+
+    from tracker.core.geometry import scale_intrinsics
+    dst = tmp_path / "scene"
+    shutil.copytree(data_dir / "lmo" / "dev", dst)
+    p = dst / "rgb" / "000008.png"
+    cv2.imwrite(str(p), cv2.resize(cv2.imread(str(p)), (1280, 960)))
+    cams = json.loads((dst / "scene_camera.json").read_text())
+    K = scale_intrinsics(np.reshape(cams["8"]["cam_K"], (3, 3)), (640, 480), (1280, 960))
+    cams["8"]["cam_K"] = K.ravel().tolist()
+    (dst / "scene_camera.json").write_text(json.dumps(cams))
+    scene = bop.load_scene(dst)
+    assert scene.frame_size([3, 17]) == (640, 480)
+    with pytest.raises(UserError, match="000008.png is 1280x960, image 3 640x480: a scene's frames must share one size"):
+        scene.frame_size(scene.im_ids)
 
 
 def test_scene_without_gt_when_gt_is_required(tmp_path, data_dir):
@@ -116,6 +157,9 @@ def test_results_csv_round_trip(tmp_path):
     for a, b in zip(back, ests):
         assert (a.scene_id, a.im_id, a.obj_id) == (b.scene_id, b.im_id, b.obj_id)
         assert np.allclose(a.R, b.R, atol=1e-7) and np.allclose(a.t, b.t, atol=1e-5)
+    bom = tmp_path / "bom.csv"  # saved by a spreadsheet as "CSV UTF-8": a byte-order mark first
+    bom.write_bytes(b"\xef\xbb\xbf" + p.read_bytes())
+    assert len(bop.read_results(bom, known_obj_ids={1, 5})) == 3
 
 
 @pytest.mark.parametrize("mutate,match", [

@@ -125,6 +125,31 @@ def test_calibration_on_real_photos_matches_opencv(data_dir):
     assert abs(res.camera.K[1, 1] / ref.K[1, 1] - 1) < 0.01
 
 
+def test_copies_of_one_view_count_once(data_dir, tmp_path):
+    """Three copies of a photo (or a board held still before a camera) are one view: a
+    calibration from them would report a small error and a focal length far off."""
+    for k in range(3):
+        shutil.copy(data_dir / "calib_opencv" / "left01.jpg", tmp_path / f"v{k}.jpg")
+    logged = []
+    with pytest.raises(UserError, match="only 1 distinct view"):
+        calibrate((9, 6), 25.0, images=str(tmp_path / "v*.jpg"), log=logged.append)
+    assert sum("(the same view as" in m for m in logged) == 2
+
+
+def test_bad_camera_values_and_file_names_are_refused(tmp_path):
+    (tmp_path / "c0.yaml").write_text(ROS_YAML.replace("320.0, 0.0, 610.0, 240.0", "0.0, 0.0, 610.0, 0.0"))
+    with pytest.raises(UserError, match=r"principal point \(0, 0\) lies outside the 640x480 image"):
+        read_camera(tmp_path / "c0.yaml")
+    (tmp_path / "inf.yaml").write_text(ROS_YAML.replace("image_width: 640", "image_width: .inf"))
+    with pytest.raises(UserError, match="must be integers"):
+        read_camera(tmp_path / "inf.yaml")
+    cam = Camera(np.array([[600.0, 0, 320], [0, 600, 240], [0, 0, 1]]), 640, 480)
+    for name in ("cam.xml", "cam.yaml.gz", "cam.json"):  # OpenCV would write XML, gzip, JSON: unreadable here
+        with pytest.raises(UserError, match="name it .yaml or .yml"):
+            write_camera(tmp_path / name, cam)
+        assert not (tmp_path / name).exists()
+
+
 def test_calibration_lists_skipped_views_and_needs_three(data_dir, tmp_path):
     src = data_dir / "calib_opencv"
     for name in ("left01.jpg", "left02.jpg"):

@@ -93,6 +93,15 @@ def test_files_of_other_instances_or_columns_are_refused(tmp_path):
         compare_files(a, bad)
     with pytest.raises(UserError, match="no such per-instance file"):
         compare_files(a, tmp_path / "none.csv")
+    rows = _rows(5, 2)
+    rows[3]["add_pass"] = float("nan")  # would make every interval NaN and the JSON invalid
+    with pytest.raises(UserError, match="line 5: add_pass is nan"):
+        compare_files(a, _write(tmp_path / "nan.csv", rows))
+    (tmp_path / "bin.csv").write_bytes(bytes(range(256)))
+    with pytest.raises(UserError, match="not a text CSV"):
+        compare_files(a, tmp_path / "bin.csv")
+    (tmp_path / "bom.csv").write_bytes(b"\xef\xbb\xbf" + a.read_bytes())  # a spreadsheet's "CSV UTF-8"
+    assert compare_files(a, tmp_path / "bom.csv")["figures"]["mean"]["diff"] == 0.0
 
 
 def test_eval_per_instance_rows_add_up_to_its_metrics(data_dir, tmp_path):

@@ -253,6 +253,12 @@ def test_malformed_logs_name_the_line(tmp_path, lines, line_no, what):
         imu.read_imu_log(p)
 
 
+def test_a_byte_order_mark_is_read_past(tmp_path):
+    p = tmp_path / "imu.csv"
+    p.write_bytes(b"\xef\xbb\xbf" + ("\n".join(GOOD) + "\n").encode())
+    assert len(imu.read_imu_log(p)) == 4
+
+
 def test_unsorted_and_duplicate_timestamps_warn(tmp_path):
     clean = imu.read_imu_log(_log(tmp_path, "\n".join(GOOD) + "\n"))
     messy = [GOOD[0], GOOD[3], GOOD[1], GOOD[2], GOOD[2].replace("0.9999", "0.5"), GOOD[4], GOOD[1]]

@@ -40,6 +40,19 @@ def test_track_on_a_bop_replay_writes_valid_files(tiny_bundle, data_dir, tmp_pat
         assert p in paths, (p, sorted(paths)[:20])
 
 
+def test_frames_without_ground_truth_are_not_scored(tiny_bundle, data_dir, tmp_path):
+    """A scene annotated in some frames only: the run scores those and keeps its exit status."""
+    import shutil
+    src = tmp_path / "scene"
+    shutil.copytree(data_dir / "lmo" / "dev", src)
+    gt = json.loads((src / "scene_gt.json").read_text())
+    (src / "scene_gt.json").write_text(json.dumps({"3": gt["3"], "17": gt["17"]}))
+    s = track(TrackConfig(str(src), str(tiny_bundle), tmp_path / "run", rerun="off", max_frames=3),
+              log=lambda m: None)
+    assert s.frames == 3 and s.error is None
+    assert s.accuracy["n_gt"] == sum(1 for i in ("3", "17") for _ in gt[i])
+
+
 def test_video_and_folder_sources(tmp_path, data_dir):
     frames = [np.full((120, 160, 3), i * 20, np.uint8) for i in range(5)]
     vid = tmp_path / "clip.avi"

@@ -3,7 +3,6 @@ rotations against an IMU fixed to the object)."""
 from __future__ import annotations
 
 import sys
-from pathlib import Path
 
 from tracker.cli.args import finite_float, positive_float, positive_int
 from tracker.core.errors import UserError
@@ -24,12 +23,13 @@ def add_calibrate(sub, REPO) -> None:
 
 def cmd_calibrate(args) -> int:
     from tracker.core.calibration import calibrate, parse_board
-    from tracker.core.camera import write_camera
+    from tracker.core.camera import camera_file_problem, write_camera
     if not args.images and args.source is None:
         raise UserError("calibrate needs --images GLOB or --source SRC")
     board = parse_board(args.board)
-    if Path(args.out).is_dir():
-        raise UserError(f"--out {args.out} is a folder; give the camera file to write, e.g. {Path(args.out) / 'camera.yaml'}")
+    problem = camera_file_problem(args.out)  # before the work
+    if problem:
+        raise UserError(f"--out {problem}")
     res = calibrate(board, args.square, images=args.images, source=args.source, every=args.every,
                     log=lambda m: print(m, file=sys.stderr))
     write_camera(args.out, res.camera, {"avg_reprojection_error": res.rms_px, "nframes": len(res.used),

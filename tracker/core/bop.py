@@ -136,9 +136,36 @@ def load_scene_gt(path, info_path=None) -> dict[int, list[GtInstance]]:
             if not is_rotation(R, tol=0.05) or not np.all(np.isfinite(t)):  # (LM-O: within 0.003)
                 raise UserError(f"{path}: image {k} instance {j}: cam_R_m2c is not a rotation or cam_t_m2c "
                                 f"is not finite")
-            lst.append(GtInstance(oid, R, t, dict(infos[j]) if j < len(infos) else {}))
+            entry = dict(infos[j]) if j < len(infos) else {}
+            problem = gt_info_problem(entry)
+            if problem:
+                raise UserError(f"{info_path}: image {k} instance {j}: {problem}")
+            lst.append(GtInstance(oid, R, t, entry))
         out[int(k)] = lst
     return out
+
+
+def gt_info_problem(entry: dict) -> str | None:
+    """What is wrong with a ``scene_gt_info`` entry (None: nothing): boxes are four finite
+    numbers with a size >= 0 (or BOP's ``[-1, -1, -1, -1]``: nothing visible), the visible fraction is a number in [0, 1], pixel counts >= 0."""
+    for key in ("bbox_obj", "bbox_visib"):
+        if key in entry:
+            try:
+                b = np.asarray(entry[key], dtype=np.float64)
+            except (TypeError, ValueError):
+                b = None
+            empty = b is not None and b.shape == (4,) and np.all(b == -1)  # BOP's box of nothing
+            if not empty and (b is None or b.shape != (4,) or not np.all(np.isfinite(b)) or b[2] < 0 or b[3] < 0):
+                return (f"'{key}' must be x, y, width, height (four finite numbers, sizes >= 0; -1 four times "
+                        f"for none), not {entry[key]!r}")
+    v = entry.get("visib_fract", 1.0)
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= v <= 1.0:  # NaN fails too
+        return f"'visib_fract' must be a number in [0, 1], not {v!r}"
+    for key in ("px_count_all", "px_count_valid", "px_count_visib"):
+        c = entry.get(key, 0)
+        if isinstance(c, bool) or not isinstance(c, (int, float)) or not c >= 0:
+            return f"'{key}' must be a pixel count >= 0, not {c!r}"
+    return None
 
 
 def save_scene_gt(path, gt: dict[int, list[GtInstance]]) -> Path:
@@ -227,6 +254,20 @@ class Scene:
             return im.shape[1], im.shape[0]
         return self.read_rgb(im_id).shape[1::-1]
 
+    def frame_size(self, im_ids) -> tuple[int, int]:
+        """(width, height) shared by the frames ``im_ids``; an error names a frame of another size
+        (a scene is one camera: its visibility and scores are computed at one size)."""
+        im_ids = list(im_ids)
+        size = self.image_size(im_ids[0])
+        if self.video is None:  # a video's frames share one size
+            for i in im_ids[1:]:
+                other = self.image_size(i)
+                if other != size:
+                    raise UserError(f"{self.images[i]} is {other[0]}x{other[1]}, image {im_ids[0]} "
+                                    f"{size[0]}x{size[1]}: a scene's frames must share one size (one camera); "
+                                    f"'app.py lab resize-scene' reads a scene out at one size")
+        return size
+
     @property
     def has_depth(self) -> bool:
         d = self.root / "depth"
@@ -288,6 +329,10 @@ def load_scene(root, require_gt: bool = False) -> Scene:
     gt_path = root / "scene_gt.json"
     if gt_path.is_file():
         gt = load_scene_gt(gt_path, root / "scene_gt_info.json")
+        frameless = sorted(set(gt) - set(images))
+        if frameless:
+            raise UserError(f"{gt_path} has ground truth for image(s) {frameless[:5]} with no frame in "
+                            f"{'rgb/' if video is None else video.path.name}: add the frames or remove their entries")
     elif require_gt:
         raise UserError(f"{root}: missing scene_gt.json (ground truth is needed here)")
     return Scene(root, cameras, gt, images, video)
@@ -434,6 +479,8 @@ def csv_rows(f, path, required):
     if header is None:
         raise UserError(f"{path}: empty file (expected header {','.join(required)},...)")
     header = [h.strip() for h in header]
+    if header:  # a spreadsheet's byte-order mark ("CSV UTF-8") is not part of the first name
+        header[0] = header[0].lstrip("\ufeff").strip()
     missing = [h for h in required if h not in header]
     if missing:
         raise UserError(f"{path}:1: missing column(s) {', '.join(missing)}")

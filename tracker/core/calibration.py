@@ -11,6 +11,10 @@ from tracker.core.camera import Camera
 from tracker.core.errors import UserError
 
 MIN_VIEWS = 3
+# two views whose corners all lie within this many pixels are one view (a copy, a board held still)
+SAME_VIEW_PX = 1.0
+# the focal length's standard deviation (OpenCV's estimate) above this share of it: a warning
+LOOSE_FOCAL = 0.02
 
 
 @dataclass
@@ -101,15 +105,23 @@ def calibrate(board: tuple[int, int], square_mm: float, images: str | None = Non
         if corners is None:
             skipped.append(f"{name} (board not found)")
             continue
+        same = next((u for u, c in zip(used, img_pts) if np.abs(c - corners).max() < SAME_VIEW_PX), None)
+        if same is not None:  # a copy, or the board held still: it adds nothing but weight
+            skipped.append(f"{name} (the same view as {same})")
+            continue
         obj_pts.append(obj)
         img_pts.append(corners)
         used.append(name)
     for s in skipped:
         log(f"skipped {s}")
     if len(used) < MIN_VIEWS:
-        raise UserError(f"only {len(used)} view(s) show the {board[0]}x{board[1]} board; "
-                        f"need at least {MIN_VIEWS} (check --board, lighting and focus)")
-    rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(obj_pts, img_pts, size, None, None)
+        raise UserError(f"only {len(used)} distinct view(s) show the {board[0]}x{board[1]} board; "
+                        f"need at least {MIN_VIEWS} (check --board, lighting and focus; move the board between views)")
+    rms, K, dist, rvecs, tvecs, std, _, _ = cv2.calibrateCameraExtended(obj_pts, img_pts, size, None, None)
+    loose = std.ravel()[:2] / np.array([K[0, 0], K[1, 1]])
+    if np.max(loose) > LOOSE_FOCAL:
+        log(f"warning: the views pin the focal length down only to +-{100 * np.max(loose):.0f} % "
+            f"(fx {K[0, 0]:.0f} +- {std.ravel()[0]:.0f} px); add views with the board tilted and near the corners")
     per_view = []
     for o, i, r, t in zip(obj_pts, img_pts, rvecs, tvecs):
         proj, _ = cv2.projectPoints(o, r, t, K, dist)

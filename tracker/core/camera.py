@@ -63,6 +63,10 @@ def check_camera(cam: Camera) -> None:
         raise UserError("distortion_coefficients hold non-finite numbers")
     if cam.width <= 0 or cam.height <= 0:
         raise UserError(f"camera image size must be positive, got {cam.width}x{cam.height}")
+    cx, cy = cam.K[0, 2], cam.K[1, 2]
+    if not (0 < cx < cam.width and 0 < cy < cam.height):
+        raise UserError(f"the principal point ({cx:g}, {cy:g}) lies outside the {cam.width}x{cam.height} "
+                        f"image; the camera matrix's cx, cy are pixels (about half the width and height)")
     if cam.dist.size not in (4, 5, 8, 12, 14):
         raise UserError(f"distortion must have 4, 5, 8, 12 or 14 coefficients, got {cam.dist.size}")
 
@@ -112,8 +116,8 @@ def _read_opencv_yaml(path: Path) -> Camera:
             fs.release()
     if K is None or K.size != 9:
         raise UserError(f"{path}: no 3x3 'camera_matrix'")
-    if not w or not h:
-        raise UserError(f"{path}: missing 'image_width' / 'image_height'")
+    if not w or not h or not np.isfinite([w, h]).all():
+        raise UserError(f"{path}: missing or non-finite 'image_width' / 'image_height'")
     return Camera(K, int(w), int(h), np.zeros(5) if d is None else d.ravel())
 
 
@@ -136,7 +140,7 @@ def _read_ros_yaml(path: Path, text: str) -> Camera:
         raise UserError(f"{path}: distortion_model '{model}' is not supported (plumb_bob, rational_polynomial)")
     try:
         w, h = int(doc["image_width"]), int(doc["image_height"])
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise UserError(f"{path}: image_width / image_height must be integers") from None
     return Camera(K, w, h, d)
 
@@ -158,8 +162,24 @@ def read_camera(path) -> Camera:
         raise UserError(str(e) if str(e).startswith(str(path)) else f"{path}: {e}") from None
 
 
+CAMERA_SUFFIXES = (".yaml", ".yml")
+
+
+def camera_file_problem(path) -> str | None:
+    """Why a camera file cannot be written at ``path`` (None: it can): camera files are YAML."""
+    path = Path(path)
+    if path.is_dir():
+        return f"{path} is a folder; give the camera file to write, e.g. {path / 'camera.yaml'}"
+    if path.suffix.lower() not in CAMERA_SUFFIXES:
+        return f"{path}: camera files are written as YAML; name it .yaml or .yml"
+    return None
+
+
 def write_camera(path, cam: Camera, extra: dict | None = None) -> Path:
     """Write an OpenCV FileStorage YAML camera file (readable by :func:`read_camera`)."""
+    problem = camera_file_problem(path)
+    if problem:
+        raise UserError(problem)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)

@@ -30,8 +30,11 @@ def read_per_instance(path) -> list[dict]:
     path = Path(path)
     if not path.is_file():
         raise UserError(f"{path}: no such per-instance file (write one with app.py eval ... --per-instance FILE)")
-    with open(path, newline="") as f:
-        rows = list(csv.DictReader(f))
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as f:  # a spreadsheet's byte-order mark is read past
+            rows = list(csv.DictReader(f))
+    except UnicodeDecodeError:
+        raise UserError(f"{path}: not a text CSV (expected the file written by app.py eval --per-instance)") from None
     need = set(KEY) | set(FIGURES.values())
     if not rows:
         raise UserError(f"{path}: no rows; expected the CSV written by app.py eval --per-instance")
@@ -41,9 +44,13 @@ def read_per_instance(path) -> list[dict]:
     out = []
     for n, r in enumerate(rows, start=2):
         try:
-            out.append({**{k: int(r[k]) for k in KEY}, **{c: float(r[c]) for c in FIGURES.values()}})
+            row = {**{k: int(r[k]) for k in KEY}, **{c: float(r[c]) for c in FIGURES.values()}}
         except (TypeError, ValueError):
             raise UserError(f"{path}, line {n}: a number was expected in {', '.join(sorted(need))}") from None
+        bad = [c for c in FIGURES.values() if not 0.0 <= row[c] <= 1.0]  # NaN fails too
+        if bad:
+            raise UserError(f"{path}, line {n}: {bad[0]} is {r[bad[0]]}; a pass or recall lies in [0, 1]")
+        out.append(row)
     return out
 
 

@@ -16,7 +16,7 @@ def gt_boxes(scene, models, im_ids) -> tuple[dict[int, list], str]:
     if all("bbox_visib" in g.info for i in im_ids for g in scene.gt.get(i, [])):
         return ({i: [(np.asarray(g.info["bbox_visib"], float), float(g.info.get("visib_fract", 1.0)))
                      for g in scene.gt.get(i, [])] for i in im_ids}, VISIB_FROM_GT_INFO)
-    h, w = scene.read_rgb(im_ids[0]).shape[:2]
+    w, h = scene.frame_size(im_ids)
     recs = rendered_gt_visibility(scene, models, im_ids, w, h)
     return {i: [(np.asarray(v.bbox_visib, float), v.visib_fract) for v in recs[i]] for i in im_ids}, VISIB_RENDERED
 

@@ -210,7 +210,7 @@ def read_imu_log(path, max_gap_s: float = DEFAULT_MAX_GAP_S) -> ImuLog:
         raise UserError(f"IMU log not found: {path}")
     ts, qs, gs = [], [], []
     try:
-        with open(path, newline="") as f:
+        with open(path, newline="", encoding="utf-8-sig") as f:  # past a spreadsheet's byte-order mark
             rows = csv.reader(f)
             header = None
             for line, row in enumerate(rows, start=1):
@@ -297,20 +297,23 @@ def read_timings(path) -> dict[int, float]:
         raise UserError(f"timings file not found: {path} (the run's per-frame capture times)")
     out: dict[int, float] = {}
     first_line: dict[int, int] = {}
-    with open(path, newline="") as f:
-        col, rows = csv_rows(f, path, ("im_id", "t_capture"))
-        ci, ct = col["im_id"], col["t_capture"]
-        for line, row in rows:
-            try:
-                im_id, tc = int(row[ci]), float(row[ct])
-            except ValueError as e:
-                raise UserError(f"{path}:{line}: unparsable value ({e})") from None
-            if not math.isfinite(tc):
-                raise UserError(f"{path}:{line}: t_capture is not finite")
-            if im_id in out:
-                raise UserError(f"{path}:{line}: im_id {im_id} already on line {first_line[im_id]}")
-            out[im_id] = tc
-            first_line[im_id] = line
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as f:
+            col, rows = csv_rows(f, path, ("im_id", "t_capture"))
+            ci, ct = col["im_id"], col["t_capture"]
+            for line, row in rows:
+                try:
+                    im_id, tc = int(row[ci]), float(row[ct])
+                except ValueError as e:
+                    raise UserError(f"{path}:{line}: unparsable value ({e})") from None
+                if not math.isfinite(tc):
+                    raise UserError(f"{path}:{line}: t_capture is not finite")
+                if im_id in out:
+                    raise UserError(f"{path}:{line}: im_id {im_id} already on line {first_line[im_id]}")
+                out[im_id] = tc
+                first_line[im_id] = line
+    except UnicodeDecodeError:
+        raise UserError(f"{path}: not a text CSV (expected a run's timings.csv)") from None
     return out
 
 

@@ -43,16 +43,15 @@ def resize_scene(scene_dir, out_dir, width: int, height: int) -> dict:
     finally:
         scene.close()
     save_scene_camera(out / "scene_camera.json", cameras)
-    keep = {str(i) for i in scales}
     gt_path = scene.root / "scene_gt.json"
     if gt_path.is_file():  # poses do not depend on the resolution
         d = json.loads(gt_path.read_text())
-        write_json(out / "scene_gt.json", {k: v for k, v in d.items() if k in keep})
+        write_json(out / "scene_gt.json", {k: v for k, v in d.items() if int(k) in scales})
     info_path = scene.root / "scene_gt_info.json"
     if info_path.is_file():
         d = json.loads(info_path.read_text())
         write_json(out / "scene_gt_info.json",
-                   {k: [_scaled_info(e, *scales[int(k)]) for e in v] for k, v in d.items() if k in keep})
+                   {k: [_scaled_info(e, *scales[int(k)]) for e in v] for k, v in d.items() if int(k) in scales})
     return {"frames": len(scales), "size": (width, height), "out": str(out),
             "left_out": [n for n in NOT_COPIED if (scene.root / n).is_dir()]}
 

@@ -532,7 +532,7 @@ def score_results(results_csv, scene_dir, models_dir, models_info=None, im_ids=N
     vis_models = {**(load_models(vis_dir, sorted(vis_from)) if vis_from else {}),
                   **({k: models[k] for k in scored} if vis_dir == models_dir else {})}
 
-    width, height = scene.image_size(im_ids[0])
+    width, height = scene.frame_size(im_ids)
     visib, source = gt_visibility(scene, vis_models, im_ids, width, height)
     if obj_ids is not None:  # the others occluded; now the scored objects' instances alone
         visib = {i: [v for v, g in zip(visib[i], scene.gt[i]) if g.obj_id in scored] for i in im_ids}

@@ -28,7 +28,8 @@ def track(cfg: TrackConfig, log=print) -> RunSummary:
             from tracker.core.bop import load_scene_gt
             root = Path(s.scene_root)
             gt = load_scene_gt(root / "scene_gt.json") if (root / "scene_gt.json").is_file() else {}
-            gt_objs = {g.obj_id for i in s.im_ids for g in gt.get(i, [])}
+            scored = [i for i in s.im_ids if i in gt]  # frames without an entry have no annotation
+            gt_objs = {g.obj_id for i in scored for g in gt[i]}
             ours = set(s.bundle_obj_ids)
             if gt and gt_objs & ours:
                 from tracker.evaluation.ground_truth import models_for_others
@@ -36,7 +37,7 @@ def track(cfg: TrackConfig, log=print) -> RunSummary:
                 meshes = Path(cfg.model) / "meshes"
                 others = sorted(gt_objs - ours)
                 m = score_results(out / "poses.csv", root, meshes, models_info=meshes / "models_info.json",
-                                  im_ids=s.im_ids, scene_id=s.scene_id, obj_ids=sorted(ours) if others else None,
+                                  im_ids=scored, scene_id=s.scene_id, obj_ids=sorted(ours) if others else None,
                                   visibility_models_dir=(models_for_others(root, others) or meshes) if others else None)
                 s.accuracy = {k: m[k] for k in ("n_gt", "add_recall", "ar_mssd", "ar_mspd", "re_median_deg",
                                                 "te_median_mm", "visibility_source")}

@@ -38,11 +38,11 @@ def write_scene_video(scene_dir, out_dir, quality: int = 95, fps: float = 10.0) 
             writer.write(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
     finally:
         writer.release()
-    keep = {str(i) for i in scene.im_ids}  # the video holds exactly these frames
+    keep = set(scene.im_ids)  # the video holds exactly these frames (keys may be zero-padded: "000003")
     for name in ("scene_camera.json", "scene_gt.json", "scene_gt_info.json"):
         if (scene.root / name).is_file():
             d = json.loads((scene.root / name).read_text())
-            (out / name).write_text(json.dumps({k: v for k, v in d.items() if k in keep}))
+            (out / name).write_text(json.dumps({k: v for k, v in d.items() if int(k) in keep}))
     packed = load_scene(out)
     psnr = [cv2.PSNR(scene.read_rgb(i), packed.read_rgb(i)) for i in scene.im_ids]
     packed.close()
