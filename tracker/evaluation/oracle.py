@@ -13,6 +13,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from tracker.core.bop import Estimate, load_scene, read_results, write_results
 from tracker.core.errors import UserError
@@ -42,7 +43,8 @@ def swap_with_truth(estimates: list[Estimate], scene, part: str) -> list[Estimat
         g = min(gts, key=lambda g: float(np.linalg.norm(np.asarray(g.t, float).reshape(3) - t)))
         tg = np.asarray(g.t, float).reshape(3)
         if part == "rotation":
-            out.append(replace(e, R=np.asarray(g.R, float).reshape(3, 3)))
+            # the nearest rotation: a scene's may be up to 0.05 off orthonormal, a results file's 1e-2
+            out.append(replace(e, R=Rotation.from_matrix(np.asarray(g.R, float).reshape(3, 3)).as_matrix()))
         elif part == "translation":
             out.append(replace(e, t=tg.copy()))
         elif part == "depth":
