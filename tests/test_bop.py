@@ -1,5 +1,6 @@
 import json
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -39,10 +40,14 @@ def test_scene_gt_info_is_attached(tmp_path, lmo_dev):
     assert back[3][0].info == {"bbox_obj": [1, 2, 3, 4], "visib_fract": 0.5}
 
 
+def _dev_copy(tmp_path, data_dir):
+    """A copy of the dev scene to break."""
+    return Path(shutil.copytree(data_dir / "lmo" / "dev", tmp_path / "scene"))
+
+
 @pytest.mark.parametrize("remove", ["rgb", "scene_camera.json"])
 def test_broken_scene_folders(tmp_path, data_dir, remove):
-    dst = tmp_path / "scene"
-    shutil.copytree(data_dir / "lmo" / "dev", dst)
+    dst = _dev_copy(tmp_path, data_dir)
     p = dst / remove
     shutil.rmtree(p) if p.is_dir() else p.unlink()
     with pytest.raises(UserError):
@@ -71,8 +76,7 @@ def _mutate(path, change):
     ("scene_gt_info.json", lambda d: {"3": [{"px_count_visib": -1}]}, "'px_count_visib' must be a pixel count"),
 ])
 def test_malformed_scene_files_are_refused(tmp_path, data_dir, file, change, match):
-    dst = tmp_path / "scene"
-    shutil.copytree(data_dir / "lmo" / "dev", dst)
+    dst = _dev_copy(tmp_path, data_dir)
     if file == "scene_gt_info.json":
         (dst / file).write_text("{}")
     _mutate(dst / file, change)
@@ -82,8 +86,7 @@ def test_malformed_scene_files_are_refused(tmp_path, data_dir, file, change, mat
 
 def test_an_image_smaller_than_its_camera_is_refused(tmp_path, data_dir):
     import cv2
-    dst = tmp_path / "scene"
-    shutil.copytree(data_dir / "lmo" / "dev", dst)
+    dst = _dev_copy(tmp_path, data_dir)
     p = dst / "rgb" / "000003.png"
     cv2.imwrite(str(p), cv2.resize(cv2.imread(str(p)), (320, 240)))
     scene = bop.load_scene(dst)
@@ -93,15 +96,13 @@ def test_an_image_smaller_than_its_camera_is_refused(tmp_path, data_dir):
 
 
 def test_bop_s_box_of_nothing_is_a_valid_info_entry(tmp_path, data_dir):
-    dst = tmp_path / "scene"
-    shutil.copytree(data_dir / "lmo" / "dev", dst)
+    dst = _dev_copy(tmp_path, data_dir)
     (dst / "scene_gt_info.json").write_text(json.dumps({"3": [{"bbox_visib": [-1, -1, -1, -1], "visib_fract": 0.0}]}))
     assert bop.load_scene(dst).gt[3][0].info["bbox_visib"] == [-1, -1, -1, -1]
 
 
 def test_ground_truth_of_a_missing_frame_is_refused(tmp_path, data_dir):
-    dst = tmp_path / "scene"
-    shutil.copytree(data_dir / "lmo" / "dev", dst)
+    dst = _dev_copy(tmp_path, data_dir)
     (dst / "rgb" / "000003.png").unlink()
     cams = json.loads((dst / "scene_camera.json").read_text())
     del cams["3"]
@@ -114,8 +115,7 @@ def test_frames_of_two_sizes_are_named(tmp_path, data_dir):
     import cv2
 
     from tracker.core.geometry import scale_intrinsics
-    dst = tmp_path / "scene"
-    shutil.copytree(data_dir / "lmo" / "dev", dst)
+    dst = _dev_copy(tmp_path, data_dir)
     p = dst / "rgb" / "000008.png"
     cv2.imwrite(str(p), cv2.resize(cv2.imread(str(p)), (1280, 960)))
     cams = json.loads((dst / "scene_camera.json").read_text())
@@ -129,8 +129,7 @@ def test_frames_of_two_sizes_are_named(tmp_path, data_dir):
 
 
 def test_scene_without_gt_when_gt_is_required(tmp_path, data_dir):
-    dst = tmp_path / "scene"
-    shutil.copytree(data_dir / "lmo" / "dev", dst)
+    dst = _dev_copy(tmp_path, data_dir)
     (dst / "scene_gt.json").unlink()
     assert bop.load_scene(dst).gt is None
     with pytest.raises(UserError, match="scene_gt.json"):
