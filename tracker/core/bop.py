@@ -147,7 +147,8 @@ def load_scene_gt(path, info_path=None) -> dict[int, list[GtInstance]]:
 
 def gt_info_problem(entry: dict) -> str | None:
     """What is wrong with a ``scene_gt_info`` entry (None: nothing): boxes are four finite
-    numbers with a size >= 0 (or BOP's ``[-1, -1, -1, -1]``: nothing visible), the visible fraction is a number in [0, 1], pixel counts >= 0."""
+    numbers with a size >= 0 (or BOP's ``[-1, -1, -1, -1]``: nothing visible), the visible
+    fraction is a number in [0, 1], pixel counts are >= 0."""
     for key in ("bbox_obj", "bbox_visib"):
         if key in entry:
             try:
