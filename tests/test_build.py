@@ -185,6 +185,31 @@ def test_the_shipped_bundle_records_the_one_command_that_built_it():
     assert (r.models, r.minutes, r.objects, r.seed) == ("../shared/data/lmo/models", 480.0, None, 0)
 
 
+@pytest.mark.parametrize("change, match", [
+    (lambda r: r.update(minutes="ten"), "'minutes' must be a positive number"),
+    (lambda r: r.update(models=None), "'models' must name the meshes' folder"),
+    (lambda r: r.update(seed=-1), "'seed' must be a whole number"),
+    (lambda r: r.update(objects=[0]), "'objects' must be a list of object ids"),
+    (lambda r: r.update(encoder=3), "'encoder' must be text"),
+])
+def test_a_hand_edited_recipe_is_one_line_error(tmp_path, change, match):
+    b = tmp_path / "b"
+    shutil.copytree(Path(__file__).parents[1] / "models" / "lmo", b)
+    from tracker.core.bundle import update_manifest
+    update_manifest(b, lambda m, folder: change(m.extra["build"]["recipe"]))
+    with pytest.raises(UserError, match=f"build recipe is malformed \\({match}"):
+        bb.recipe_from_manifest(b)
+
+
+def test_from_manifest_refuses_the_options_it_would_ignore(tmp_path):
+    """The recorded recipe is what --from-manifest builds: a --minutes or --models beside it would
+    be silently overruled (a 480-minute rebuild of models/lmo asked for as 0.5 minutes)."""
+    from tests.test_cli import assert_one_line_error, run
+    p = run("build", "--from-manifest", "models/lmo", "--out", tmp_path / "x", "--minutes", 0.5, "--seed", 7)
+    assert_one_line_error(p)
+    assert "drop --minutes, --seed" in p.stderr and not (tmp_path / "x").exists()
+
+
 def test_build_without_the_train_extra_stops_before_rendering(small, tmp_path, monkeypatch):
     import sys
     monkeypatch.setitem(sys.modules, "torch", None)  # 'import torch' fails, as without the extra

@@ -150,6 +150,22 @@ def test_numeric_flags_are_checked_before_any_work(tmp_path, data_dir):
         assert "error: argument" in p.stderr, p.stderr
 
 
+def test_a_name_that_is_not_utf8_is_a_one_line_error_not_a_crash(tmp_path, data_dir):
+    """OpenCV crashes the process (a segfault) on a path whose bytes are not UTF-8."""
+    latin1 = tmp_path / "vid\udce9o.avi"  # the bytes b"vid\xe9o.avi", as Python keeps them
+    shutil.copy(REPO / "demo" / "lmo_dev" / "rgb.avi", latin1)
+    p = run("track", "--source", latin1, "--max-frames", 1, "--rerun", "off", "--out", tmp_path / "run")
+    assert_one_line_error(p)
+    assert "the name is not UTF-8" in p.stderr and "vid\\udce9o.avi" in p.stderr
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    shutil.copy(data_dir / "lmo" / "dev" / "rgb" / "000003.png", folder / "\udce9t\udce9.png")
+    p = run("track", "--source", folder, "--calib", REPO / "calib" / "lmo_kinect.yml", "--max-frames", 1,
+            "--rerun", "off", "--out", tmp_path / "run2")
+    assert_one_line_error(p)
+    assert "image " in p.stderr and "the name is not UTF-8" in p.stderr
+
+
 def test_an_unwritable_output_is_a_one_line_error(tmp_path, data_dir):
     (tmp_path / "taken").write_text("a file, not a folder")
     p = run("lab", "pack-scene", "--data", data_dir / "lmo" / "dev", "--out", tmp_path / "taken" / "rec")

@@ -76,6 +76,32 @@ def test_unreadable_meshes(tmp_path, content):
         load_mesh(p)
 
 
+def _ascii_ply(path, vertices, faces):
+    head = (f"ply\nformat ascii 1.0\nelement vertex {len(vertices)}\nproperty float x\nproperty float y\n"
+            f"property float z\nelement face {len(faces)}\nproperty list uchar int vertex_indices\nend_header\n")
+    path.write_text(head + "".join(f"{x} {y} {z}\n" for x, y, z in vertices)
+                    + "".join(f"3 {a} {b} {c}\n" for a, b, c in faces))
+    return path
+
+
+def test_meshes_with_broken_faces_or_no_area_are_refused(tmp_path):
+    from tracker.core.meshes import read_mesh
+    quad = [(0, 0, 0), (10, 0, 0), (0, 10, 0), (0, 0, 10)]
+    assert read_mesh(_ascii_ply(tmp_path / "ok.ply", quad, [(0, 1, 2), (0, 1, 3)])).area > 0
+    with pytest.raises(UserError, match="a face names vertex 99 of 4"):
+        read_mesh(_ascii_ply(tmp_path / "idx.ply", quad, [(0, 1, 2), (0, 1, 99)]))
+    line = [(0, 0, 0), (10, 0, 0), (20, 0, 0), (30, 0, 0)]
+    with pytest.raises(UserError, match="triangles have no area"):
+        read_mesh(_ascii_ply(tmp_path / "line.ply", line, [(0, 1, 2), (1, 2, 3)]))
+
+
+def test_a_bop_folder_with_object_id_0_is_refused(tmp_path):
+    from tracker.core.meshes import model_files
+    (tmp_path / "obj_000000.ply").write_text("ply")
+    with pytest.raises(UserError, match="object ids start at 1"):
+        model_files(tmp_path)
+
+
 def test_the_parsed_mesh_cache_gives_the_parsed_mesh_and_survives_a_broken_cache(tmp_path, monkeypatch, data_dir):
     """A PLY read twice: the second read comes from the cache (keyed by the file's contents)
     and equals the parse; a corrupt cache file is parsed again, and an edited file is not

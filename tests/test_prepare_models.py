@@ -58,6 +58,41 @@ def test_a_folder_without_meshes_is_one_clear_error(tmp_path):
         prepare_models(tmp_path, tmp_path / "out", log=lambda *a: None)
 
 
+def _sphere(path, radius_mm=50.0, at=(0.0, 0.0, 0.0)):
+    m = trimesh.creation.icosphere(subdivisions=2, radius=radius_mm)
+    m.apply_translation(at)
+    m.export(path)
+
+
+@pytest.mark.parametrize("name, radius, at, units, match", [
+    ("obj_000000.ply", 50.0, (0, 0, 0), "auto", "object ids start at 1"),
+    # a scan in map coordinates: float32 would keep its position and lose its shape
+    ("scan.ply", 0.075, (500000.0, 5000000.0, 100.0), "m", "lies 3.07e\\+07 times its size from its origin"),
+    ("big.ply", 1e20, (0, 0, 0), "auto", "mm across; pass the units"),
+])
+def test_meshes_that_would_be_lost_or_misread_are_refused(tmp_path, name, radius, at, units, match):
+    src = tmp_path / "src"
+    src.mkdir()
+    _sphere(src / name, radius, at)
+    with pytest.raises(UserError, match=match):
+        prepare_models(src, tmp_path / "out", units=units, log=lambda *a: None)
+    assert not list((tmp_path / "out").glob("obj_*.ply"))
+
+
+def test_an_output_folder_holding_other_meshes_is_refused(tmp_path):
+    """Every obj_*.ply of a models folder is trained on: an old mesh left there would be too."""
+    src = tmp_path / "src"
+    src.mkdir()
+    _sphere(src / "a.ply")
+    _sphere(src / "b.ply", 30.0)
+    prepare_models(src, tmp_path / "out", symmetries=False, log=lambda *a: None)
+    (src / "b.ply").unlink()
+    with pytest.raises(UserError, match="already holds obj_000002.ply"):
+        prepare_models(src, tmp_path / "out", symmetries=False, log=lambda *a: None)
+    prepare_models(src, tmp_path / "again", symmetries=False, log=lambda *a: None)  # a new folder: fine
+    assert sorted(load_models(tmp_path / "again")) == [1]
+
+
 def _two_meshes(tmp_path):
     src = tmp_path / "src"
     src.mkdir()

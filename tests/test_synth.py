@@ -201,6 +201,34 @@ def test_bad_input(data_dir, tmp_path):
         generate(bad, tmp_path / "d", 2, workers=1, progress=False)
 
 
+def test_what_workers_load_is_checked_in_the_parent_first(data_dir, tmp_path):
+    """A photo cut short or an occluder that is not a mesh: one error before any worker starts
+    (each worker loads them as it starts, where an error broke the pool with a traceback each)."""
+    bgs = tmp_path / "bgs"
+    bgs.mkdir()
+    photo = sorted((data_dir / "backgrounds").glob("*.jpg"))[0]
+    shutil.copy(photo, bgs / photo.name)
+    (bgs / "cut.jpg").write_bytes(photo.read_bytes()[:300])
+    cfg = _cfg(data_dir)
+    cfg.backgrounds_dir = str(bgs)
+    with pytest.raises(UserError, match="unreadable background image: .*cut.jpg"):
+        generate(cfg, tmp_path / "a", 2, workers=2, progress=False)
+    occ = tmp_path / "occ"
+    occ.mkdir()
+    (occ / "broken.ply").write_text("ply\nformat ascii 1.0\nelement vertex 3\ngarbage")
+    with pytest.raises(UserError, match="broken.ply: unreadable mesh"):
+        generate(_cfg(data_dir, occluders_dir=str(occ)), tmp_path / "b", 2, workers=2, progress=False)
+    assert not (tmp_path / "a" / "000000").exists() and not (tmp_path / "b" / "000000").exists()
+
+
+def test_a_photo_smaller_than_a_patch_textures_distractors_too():
+    from tracker.training.synth.randomise import distractor_meshes, texture_from_photos
+    rng = np.random.default_rng(0)
+    meshes = distractor_meshes(rng, 3)
+    texture_from_photos(meshes, [np.full((20, 30, 3), 90, np.uint8)], rng)
+    assert all(m.visual.vertex_colors.shape == (len(m.vertices), 4) for m in meshes)
+
+
 def test_sphere_prior_runs(data_dir, tmp_path):
     rep = generate(_cfg(data_dir, seed=1, prior="sphere"), tmp_path, 2, workers=1, progress=False)
     assert rep.images == 2

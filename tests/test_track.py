@@ -170,6 +170,11 @@ def test_camera_unplugged_and_plugged_back_in_reconnects():
     assert frames == list(range(20)) and values == list(range(10)) * 2 and cam.dropped == 0
 
 
+def test_a_digit_that_is_not_a_number_is_no_camera_index():
+    from tracker.runtime.sources import is_camera
+    assert is_camera("0") and is_camera("/dev/video2") and not is_camera("²") and not is_camera("٣")
+
+
 def test_missing_camera_is_a_clear_error():
     class Closed(FakeCapture):
         def isOpened(self):

@@ -60,15 +60,31 @@ def add_build(sub, REPO) -> None:
     s.add_argument("--names", metavar="FILE",
                    help="JSON of object names by id, e.g. {\"9\": \"duck\"} (default: names.json beside the meshes, "
                         "else the file names); kept in the bundle and shown on the overlay, in rerun and the status")
-    s.add_argument("--from-manifest", metavar="BUNDLE", help="redo the recipe a built bundle records (its options)")
-    s.set_defaults(func=cmd_build)
+    s.add_argument("--from-manifest", metavar="BUNDLE",
+                   help="redo the recipe a built bundle records (its options; only --workers and --device may "
+                        "differ: where it runs)")
+    s.set_defaults(func=cmd_build, recipe_defaults={k: s.get_default(k) for k in RECIPE_OPTIONS})
+
+
+# the options that make the bundle (--workers, --device and --ray say where it is made)
+RECIPE_OPTIONS = ("models", "minutes", "objects", "prior", "units", "seed", "encoder", "size",
+                  "detector_backbone", "mesh_faces", "head_sets", "max_images", "names")
 
 
 def cmd_build(args) -> int:
     sigterm_as_ctrl_c()
     from tracker.training.build import Recipe, build, recipe_from_manifest
     if args.from_manifest:
+        given = [k for k in RECIPE_OPTIONS if getattr(args, k) != args.recipe_defaults[k]]
+        if given:  # before anything is read: the recorded recipe would silently win
+            flags = ", ".join("--" + k.replace("_", "-") for k in given)
+            raise UserError(f"--from-manifest redoes {args.from_manifest}'s recorded recipe; drop {flags} "
+                            f"(or build from --models with the options you want)")
         recipe = recipe_from_manifest(args.from_manifest, log=lambda m: print(m, file=sys.stderr))
+        if args.workers:
+            recipe.workers = args.workers
+        if args.device != args.recipe_defaults.get("device", "auto"):
+            recipe.device = args.device
         print(f"build: the recipe of {args.from_manifest}: {recipe}", file=sys.stderr)
     else:
         if not args.models:

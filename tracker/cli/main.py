@@ -42,6 +42,15 @@ def _process_env() -> None:
     os.environ.setdefault("THP_MEM_ALLOC_ENABLE", "1")
 
 
+def _check_names(args) -> None:
+    """Every path or name given is UTF-8: OpenCV crashes the process on any other (tracker.core.files)."""
+    from tracker.core.files import require_utf8
+    for key, value in vars(args).items():
+        for v in value if isinstance(value, (list, tuple)) else [value]:
+            if isinstance(v, str):
+                require_utf8(v, f"--{key.replace('_', '-')}")
+
+
 def main(argv=None) -> int:
     """``python app.py`` and the console script ``autopose``: the exit status."""
     _process_env()
@@ -53,6 +62,7 @@ def main(argv=None) -> int:
     warnings.simplefilter("default")
     warnings.formatwarning = lambda msg, cat, *a, **k: f"warning: {msg}\n"
     try:
+        _check_names(args)
         return args.func(args)
     except UserError as e:
         print(f"error: {e}", file=sys.stderr)

@@ -50,6 +50,12 @@ def read_mesh(path) -> trimesh.Trimesh:
         raise UserError(f"{path}: mesh has no triangles")
     if not np.all(np.isfinite(mesh.vertices)):
         raise UserError(f"{path}: mesh has non-finite vertices")
+    faces = np.asarray(mesh.faces)
+    if faces.min() < 0 or faces.max() >= len(mesh.vertices):
+        raise UserError(f"{path}: a face names vertex {int(faces.max() if faces.max() >= len(mesh.vertices) else faces.min())}"
+                        f" of {len(mesh.vertices)} (a broken file)")
+    if not np.isfinite(mesh.area) or mesh.area <= 0:
+        raise UserError(f"{path}: the mesh's triangles have no area (all its points on a line or at one place)")
     return mesh
 
 
@@ -126,7 +132,10 @@ def model_files(models_dir) -> dict[int, Path]:
     d = Path(models_dir)
     if not d.is_dir():
         return {}
-    return {int(MODEL_RE.match(p.name).group(1)): p for p in sorted(d.iterdir()) if MODEL_RE.match(p.name)}
+    found = {int(MODEL_RE.match(p.name).group(1)): p for p in sorted(d.iterdir()) if MODEL_RE.match(p.name)}
+    if 0 in found:
+        raise UserError(f"{found[0]}: object ids start at 1 (BOP); rename it (obj_000001.ply, ...)")
+    return found
 
 
 def load_models(models_dir, obj_ids=None) -> dict[int, ObjectModel]:

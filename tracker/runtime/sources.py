@@ -13,6 +13,7 @@ import numpy as np
 
 from tracker.core.bop import IMAGE_EXTS, GtInstance, is_scene_dir, load_scene
 from tracker.core.errors import UserError
+from tracker.core.files import require_utf8
 
 
 @dataclass
@@ -71,7 +72,7 @@ class ImageFolderSource(Source):
     kind = "images"
 
     def __init__(self, root, max_frames=None, realtime=False, fps=30.0):
-        self.paths = sorted(p for p in Path(root).iterdir() if p.suffix.lower() in IMAGE_EXTS)
+        self.paths = sorted(require_utf8(p, "image") for p in Path(root).iterdir() if p.suffix.lower() in IMAGE_EXTS)
         if not self.paths:
             raise UserError(f"{root}: no .png/.jpg images")
         self.paths = self.paths[:max_frames] if max_frames else self.paths
@@ -261,7 +262,7 @@ def _sleep_until(t):
 def is_camera(src) -> bool:
     """A camera index or a /dev/videoN path (anything else is a recording)."""
     s = str(src)
-    return s.isdigit() or s.startswith("/dev/video")
+    return (s.isascii() and s.isdigit()) or s.startswith("/dev/video")  # "²" is a digit, not a number
 
 
 def source_kind(src) -> str:
@@ -283,7 +284,7 @@ def open_source(src: str, max_frames=None, realtime=False, width=None, height=No
     s = str(src)
     kind = source_kind(s)
     if kind == CameraSource.kind:
-        return CameraSource(int(s) if s.isdigit() else s, width, height, fps, max_frames)
+        return CameraSource(int(s) if s.isascii() and s.isdigit() else s, width, height, fps, max_frames)
     if kind == BopSceneSource.kind:
         return BopSceneSource(Path(s), max_frames, realtime)
     if kind == ImageFolderSource.kind:

@@ -478,7 +478,8 @@ def recipe_from_manifest(bundle_dir, log=None) -> Recipe:
     the one the build recorded) is said, since the recipe rebuilds its own."""
     from tracker.core.bundle import open_bundle
     b = open_bundle(bundle_dir)
-    rec = b.manifest.extra.get("build", {}).get("recipe")
+    built = b.manifest.extra.get("build")
+    rec = built.get("recipe") if isinstance(built, dict) else None
     if not isinstance(rec, dict):
         raise UserError(f"{bundle_dir}: its manifest records no build recipe (it was not made by 'app.py build')")
     rec = dict(rec)
@@ -492,4 +493,36 @@ def recipe_from_manifest(bundle_dir, log=None) -> Recipe:
         parts = ", ".join(changed) if changed else "detector"
         log(f"build: note: {bundle_dir}'s {parts} came from another run than its build{why}; this recipe "
             f"makes its own, so those of the rebuilt bundle differ")
+    problem = recipe_problem(rec)
+    if problem:
+        raise UserError(f"{bundle_dir}: its manifest's build recipe is malformed ({problem}); build from --models")
     return Recipe.from_dict(rec)
+
+
+# the recorded recipe's fields and what each must hold (a manifest's JSON can be edited by hand)
+_WHOLE = ("seed", "size", "latent", "workers", "mesh_faces", "head_sets")
+_TEXT = ("models", "prior", "units", "method", "encoder", "detector_backbone", "device")
+
+
+def recipe_problem(rec: dict) -> str | None:
+    """What is wrong with a recorded recipe (None: nothing), before :class:`Recipe` is made of it."""
+    def whole(v) -> bool:
+        return isinstance(v, int) and not isinstance(v, bool)
+    if not isinstance(rec.get("models"), str) or not rec["models"]:
+        return "'models' must name the meshes' folder"
+    m = rec.get("minutes", 60.0)
+    if isinstance(m, bool) or not isinstance(m, (int, float)) or not 0 < m < float("inf"):
+        return f"'minutes' must be a positive number, not {m!r}"
+    for k in _WHOLE:
+        if k in rec and not (whole(rec[k]) and rec[k] >= 0):
+            return f"'{k}' must be a whole number >= 0, not {rec[k]!r}"
+    for k in _TEXT:
+        if k in rec and not isinstance(rec[k], str):
+            return f"'{k}' must be text, not {rec[k]!r}"
+    objs = rec.get("objects")
+    if objs is not None and not (isinstance(objs, list) and all(whole(o) and o >= 1 for o in objs)):
+        return f"'objects' must be a list of object ids, not {objs!r}"
+    mx = rec.get("max_images")
+    if mx is not None and not (whole(mx) and mx >= 1):
+        return f"'max_images' must be a whole number >= 1, not {mx!r}"
+    return None

@@ -23,6 +23,10 @@ from tracker.core.errors import UserError
 
 MESH_SUFFIXES = (".ply", ".obj", ".stl", ".glb", ".gltf", ".off")
 METRES_BELOW = 5.0  # a diameter under 5 units: metres (a 5 m object), not a 5 mm one
+LARGEST_MM = 1e5  # an object over 100 m across is in other units, not one to track from a camera
+# a mesh farther from its origin than this many times its size: float32 (a PLY's vertices) keeps
+# about 1e-7 of the distance, so its shape would blur to 1e-3 of its size
+FARTHEST = 1e4
 UNITS = {"auto": None, "mm": 1.0, "cm": 10.0, "m": 1000.0}
 BOP_NAME = re.compile(r"^obj_(\d{6})(?:[_-](.+))?$")  # obj_000009 or obj_000009_duck: id 9 (named duck)
 NAMES = "names.json"  # {"9": "duck", ...}: beside the meshes, or given (--names)
@@ -128,6 +132,8 @@ def prepare_models(src, out, units: str = "auto", symmetries: bool = True, log=p
     for p in files:
         m = BOP_NAME.match(p.stem)
         if m:
+            if int(m.group(1)) < 1:
+                raise UserError(f"{p}: object ids start at 1 (BOP); rename it, e.g. obj_000001{p.suffix}")
             if int(m.group(1)) in taken:
                 raise UserError(f"{src}: two meshes for object {int(m.group(1))}")
             ids[p] = int(m.group(1))
@@ -141,6 +147,11 @@ def prepare_models(src, out, units: str = "auto", symmetries: bool = True, log=p
             taken.add(nxt)
     given = _given_names(src, names, ids)  # a bad names file fails before any mesh is read
     out = Path(out)
+    from tracker.core.meshes import model_files
+    stale = sorted(set(model_files(out)) - set(ids.values()))
+    if stale:  # jobs read every obj_*.ply of the folder: an old one would be trained on too
+        raise UserError(f"--out {out} already holds obj_{stale[0]:06d}.ply, not one of these meshes; "
+                        f"give an empty folder or remove the old meshes first")
     out.mkdir(parents=True, exist_ok=True)
     report = {}
     for p in files:
@@ -152,6 +163,12 @@ def prepare_models(src, out, units: str = "auto", symmetries: bool = True, log=p
                 raise UserError(f"{p.name}: diameter {d:.3g} looks like metres (meshes here are in millimetres); "
                                 f"pass --units m to convert it (or --units mm if it really is {d:.3g} mm across)")
             scale = 1.0
+        if d * scale > LARGEST_MM:
+            raise UserError(f"{p.name}: {d * scale:.3g} mm across; pass the units it is in (--units m, cm, mm ...)")
+        far = float(np.abs(mesh.vertices).max()) / d if d > 0 else 0.0
+        if far > FARTHEST:  # a PLY stores float32: the shape would be lost in the offset
+            raise UserError(f"{p.name}: the mesh lies {far:.3g} times its size from its origin (world or map "
+                            f"coordinates?); move it to the origin (BOP: the bounding-box centre) first")
         if scale != 1.0:
             mesh.apply_scale(scale)
         if getattr(mesh.visual, "kind", None) != "vertex":

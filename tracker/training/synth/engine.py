@@ -469,9 +469,11 @@ def generate(cfg: SynthConfig, out_dir, n_images: int, workers: int = 2, batch: 
         raise UserError(f"unknown distractor style '{cfg.distractors}' (choose from {', '.join(DISTRACTOR_STYLES)})")
     if cfg.lighting not in LIGHTING_STYLES:
         raise UserError(f"unknown lighting '{cfg.lighting}' (choose from {', '.join(LIGHTING_STYLES)})")
-    list_backgrounds(cfg.backgrounds_dir)  # fail early, in the parent
+    # fail early, in the parent, on what each worker loads as it starts (an error there would be
+    # a broken pool): every photo decoded, the occluders the workers will draw read and checked
+    _ = Backgrounds(list_backgrounds(cfg.backgrounds_dir)).images
     if cfg.occluders_dir:
-        list_occluders(cfg.occluders_dir)
+        occluder_meshes(list_occluders(cfg.occluders_dir), np.random.default_rng([cfg.seed, 11]))
         cfg.occluders_dir = str(Path(cfg.occluders_dir).resolve())
     from tracker.core.meshes import load_models
     models = load_models(cfg.models_dir, cfg.obj_ids)  # fail early (and warn once) on bad meshes

@@ -11,7 +11,9 @@ import numpy as np
 import trimesh
 
 from tracker.core.errors import UserError
+from tracker.core.files import require_utf8
 from tracker.core.geometry import project
+from tracker.core.meshes import read_mesh
 from tracker.core.visibility import mask_box
 from tracker.runtime.render import srgb_to_linear
 
@@ -27,7 +29,8 @@ def list_backgrounds(folder) -> list[Path]:
         raise UserError(f"backgrounds folder not found: {d}")
     # a file that is not an image (by its signature) is skipped; one that is cut short is
     # refused when first drawn (Backgrounds.photo)
-    files = sorted(p for p in d.iterdir() if p.suffix.lower() in BG_EXTS and cv2.haveImageReader(str(p)))
+    files = sorted(require_utf8(p, "background") for p in d.iterdir() if p.suffix.lower() in BG_EXTS)
+    files = [p for p in files if cv2.haveImageReader(str(p))]
     if not files:
         raise UserError(f"{d}: no readable .jpg/.png background images")
     return files
@@ -258,12 +261,7 @@ def occluder_meshes(files: list[Path], rng: np.random.Generator, n: int = 48,
     pick = rng.permutation(len(files))[:n]
     out = []
     for i in sorted(int(k) for k in pick):
-        try:
-            m = trimesh.load(files[i], force="mesh", process=False)
-        except Exception as e:  # noqa: BLE001 - any reader error: the file is not a mesh
-            raise UserError(f"{files[i]}: not a readable mesh ({type(e).__name__})") from None
-        if not isinstance(m, trimesh.Trimesh) or len(m.faces) == 0:
-            raise UserError(f"{files[i]}: no triangles")
+        m = read_mesh(files[i])  # checked: triangles, finite vertices, an area
         vertex_coloured(m)
         m.apply_translation(-m.bounds.mean(0))
         m.apply_scale(rng.uniform(*size_mm) / max(float(m.extents.max()), 1e-9))
@@ -278,7 +276,8 @@ def texture_from_photos(meshes: list[trimesh.Trimesh], photos: list[np.ndarray],
     for m in meshes:
         photo = photos[int(rng.integers(len(photos)))]
         h, w = photo.shape[:2]
-        side = int(rng.integers(48, max(49, min(h, w, 320))))
+        lo = min(48, h, w)  # a photo smaller than 48 px gives a patch of its size
+        side = int(rng.integers(lo, max(lo + 1, min(h, w, 320))))
         y0, x0 = int(rng.integers(0, h - side + 1)), int(rng.integers(0, w - side + 1))
         patch = photo[y0:y0 + side, x0:x0 + side].astype(np.float32)
         axes = np.linalg.qr(rng.normal(size=(3, 3)))[0][:, :2]
