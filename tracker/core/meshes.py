@@ -51,9 +51,9 @@ def read_mesh(path) -> trimesh.Trimesh:
     if not np.all(np.isfinite(mesh.vertices)):
         raise UserError(f"{path}: mesh has non-finite vertices")
     faces = np.asarray(mesh.faces)
-    if faces.min() < 0 or faces.max() >= len(mesh.vertices):
-        raise UserError(f"{path}: a face names vertex {int(faces.max() if faces.max() >= len(mesh.vertices) else faces.min())}"
-                        f" of {len(mesh.vertices)} (a broken file)")
+    bad = faces[(faces < 0) | (faces >= len(mesh.vertices))]
+    if bad.size:
+        raise UserError(f"{path}: a face names vertex {int(bad[0])} of {len(mesh.vertices)} (a broken file)")
     if not np.isfinite(mesh.area) or mesh.area <= 0:
         raise UserError(f"{path}: the mesh's triangles have no area (all its points on a line or at one place)")
     return mesh
