@@ -201,24 +201,26 @@ def test_bad_input(data_dir, tmp_path):
         generate(bad, tmp_path / "d", 2, workers=1, progress=False)
 
 
-def test_what_workers_load_is_checked_in_the_parent_first(data_dir, tmp_path):
-    """A photo cut short or an occluder that is not a mesh: one error before any worker starts
-    (each worker loads them as it starts, where an error broke the pool with a traceback each)."""
+def test_what_workers_load_at_their_start_is_one_error(data_dir, tmp_path, capfd):
+    """A photo cut short (decoded by each worker as it starts, for photo distractors) or an
+    occluder that is not a mesh (read in the parent first): one error, where an error in a
+    worker's start broke the pool with a traceback from each worker and "the renderer died"."""
     bgs = tmp_path / "bgs"
     bgs.mkdir()
     photo = sorted((data_dir / "backgrounds").glob("*.jpg"))[0]
     shutil.copy(photo, bgs / photo.name)
     (bgs / "cut.jpg").write_bytes(photo.read_bytes()[:300])
-    cfg = _cfg(data_dir)
+    cfg = _cfg(data_dir, distractors="hard")
     cfg.backgrounds_dir = str(bgs)
     with pytest.raises(UserError, match="unreadable background image: .*cut.jpg"):
         generate(cfg, tmp_path / "a", 2, workers=2, progress=False)
+    assert "Traceback" not in capfd.readouterr().err
     occ = tmp_path / "occ"
     occ.mkdir()
     (occ / "broken.ply").write_text("ply\nformat ascii 1.0\nelement vertex 3\ngarbage")
     with pytest.raises(UserError, match="broken.ply: unreadable mesh"):
         generate(_cfg(data_dir, occluders_dir=str(occ)), tmp_path / "b", 2, workers=2, progress=False)
-    assert not (tmp_path / "a" / "000000").exists() and not (tmp_path / "b" / "000000").exists()
+    assert not (tmp_path / "b" / "000000").exists()  # refused before any folder was made
 
 
 def test_a_photo_smaller_than_a_patch_textures_distractors_too():

@@ -131,6 +131,17 @@ _W = {}  # per-process state: renderers, meshes, backgrounds
 
 
 def _init_worker(cfg_dict: dict, models: dict | None = None):
+    """A pool worker's start (:func:`_init_state`). Its bad input (a photo cut short, an occluder
+    that is not a mesh) is raised from its first batch: one error for the parent to show, where
+    an initializer's exception breaks the pool with a traceback from every worker."""
+    try:
+        _init_state(cfg_dict, models)
+    except UserError as e:
+        _W.clear()
+        _W["error"] = e
+
+
+def _init_state(cfg_dict: dict, models: dict | None = None):
     """A render worker's state: its meshes (``models``: the parent's, when it forked), the
     distractors, backgrounds and its two renderers."""
     os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
@@ -290,6 +301,8 @@ CRASH_HOOK = "AUTOPOSE_TEST_SYNTH_CRASH"
 
 def _render_batch(args):
     indices, out_root = args
+    if "error" in _W:  # the worker could not start (_init_worker)
+        raise _W["error"]
     hook = os.environ.get(CRASH_HOOK)
     if hook:
         at, marker = hook.split(":", 1)
@@ -469,10 +482,9 @@ def generate(cfg: SynthConfig, out_dir, n_images: int, workers: int = 2, batch: 
         raise UserError(f"unknown distractor style '{cfg.distractors}' (choose from {', '.join(DISTRACTOR_STYLES)})")
     if cfg.lighting not in LIGHTING_STYLES:
         raise UserError(f"unknown lighting '{cfg.lighting}' (choose from {', '.join(LIGHTING_STYLES)})")
-    # fail early, in the parent, on what each worker loads as it starts (an error there would be
-    # a broken pool): every photo decoded, the occluders the workers will draw read and checked
-    _ = Backgrounds(list_backgrounds(cfg.backgrounds_dir)).images
-    if cfg.occluders_dir:
+    list_backgrounds(cfg.backgrounds_dir)  # fail early, in the parent (photos are decoded in the
+    # workers: OpenCV's threads started here would hang forked workers)
+    if cfg.occluders_dir:  # the ones the workers will draw, read and checked
         occluder_meshes(list_occluders(cfg.occluders_dir), np.random.default_rng([cfg.seed, 11]))
         cfg.occluders_dir = str(Path(cfg.occluders_dir).resolve())
     from tracker.core.meshes import load_models
@@ -512,7 +524,7 @@ def generate(cfg: SynthConfig, out_dir, n_images: int, workers: int = 2, batch: 
     bar = tqdm(total=len(mine), unit="img", desc="synth" + (f" {shard[0]}/{shard[1]}" if shard else ""),
                disable=not progress)
     if workers <= 1:
-        _init_worker(asdict(cfg), models)
+        _init_state(asdict(cfg), models)
     results = map(_render_batch, tasks) if workers <= 1 else _pooled(cfg, pending, workers, bar, started, models)
     try:
         last_flush = time.perf_counter()
