@@ -247,12 +247,15 @@ class Scene:
             self.video.close()
 
     def image_size(self, im_id: int) -> tuple[int, int]:
-        """(width, height) of an image."""
+        """(width, height) of an image, from its header (no decoding: ``frame_size`` asks it of
+        every frame; Pillow comes with pyrender)."""
         if self.video is None:
-            im = cv2.imread(str(self.images[im_id]), cv2.IMREAD_UNCHANGED)
-            if im is None:
-                raise UserError(f"unreadable image: {self.images[im_id]}")
-            return im.shape[1], im.shape[0]
+            from PIL import Image, UnidentifiedImageError
+            try:
+                with Image.open(self.images[im_id]) as im:
+                    return im.size
+            except (OSError, UnidentifiedImageError):
+                raise UserError(f"unreadable image: {self.images[im_id]}") from None
         return self.read_rgb(im_id).shape[1::-1]
 
     def frame_size(self, im_ids) -> tuple[int, int]:
