@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-pytest.importorskip("torch")
+torch = pytest.importorskip("torch")
 
 from tests.conftest import REPO  # noqa: E402
 from tracker.core.bop import load_scene  # noqa: E402
@@ -749,3 +749,22 @@ def test_head_sets_are_kept_one_by_one_and_a_rerun_fits_only_the_missing(tiny_sp
     assert all(np.array_equal(cb.codes_[o][0], again[1].codes_[o][0]) for o in OBJS)
     tr_mod.fit_head_sets(mu + 1, cs, OBJS, info, tr, va, np.random.default_rng(5), n_sets=3, seed=3, **opts)
     assert fitted == [3, 4, 5]  # other codes (another encoder): fitted anew
+
+
+def test_train_with_step_and_epoch_budgets_makes_the_same_encoder_twice(tiny_bundle, tmp_path):
+    """The autoencoder's starting weights come from the seed too: two runs of one command with step
+    and epoch budgets export the same encoder (its first weights were drawn unseeded, so no two
+    runs were alike)."""
+    import onnx
+    from onnx import numpy_helper
+    from tracker.training.train import train_bundle
+    split = tiny_bundle.parent / "split"
+    weights = []
+    for run in ("a", "b"):
+        torch.manual_seed(1 if run == "a" else 2)  # what came before in the process must not matter
+        train_bundle(split, tmp_path / run, method="cvam", size=32, latent=16, max_steps=3, reg_epochs=2,
+                     models_info_path=REPO / "models" / "lmo_models_info.json", log=lambda *a: None)
+        g = onnx.load(str(tmp_path / run / "encoder.onnx")).graph
+        weights.append({i.name: numpy_helper.to_array(i) for i in g.initializer})
+    assert weights[0].keys() == weights[1].keys() and len(weights[0]) > 4
+    assert all(np.array_equal(weights[0][k], weights[1][k]) for k in weights[0])

@@ -51,6 +51,12 @@ class CropSet:
         c = self.centres() if centres is None else centres
         return np.swapaxes(ray_rotation(c, self.K), 1, 2) @ self.R
 
+    def labels(self) -> "CropSet":
+        """The same crops without their pixels (``x``, ``y`` of width 0: no memory), for what
+        needs only poses, boxes and intrinsics (the heads learn from latent codes)."""
+        none = np.empty((len(self), 0, 0, 3), np.uint8)
+        return CropSet(none, none, self.obj_id, self.R, self.t, self.box, self.K, self.visib)
+
     def subset(self, idx) -> "CropSet":
         return CropSet(*(getattr(self, f)[idx] for f in self.__dataclass_fields__))
 
@@ -147,8 +153,8 @@ def build_training_crops(split_dir, size: int, seed: int = 0, jitter: bool = Tru
     bar.close()
     if not cols["x"]:
         raise UserError(f"{split_dir}: no instance with visible fraction >= {MIN_VISIB}")
-    return CropSet(np.stack(cols["x"]), np.stack(cols["y"]), np.array(cols["obj_id"]), np.stack(cols["R"]),
-                   np.stack(cols["t"]), np.stack(cols["box"]), np.stack(cols["K"]), np.array(cols["visib"]))
+    # each column stacked, then its list dropped: the crops are held twice for one column at most
+    return CropSet(*(np.stack(cols.pop(f)) for f in CropSet.__dataclass_fields__))
 
 
 def split_fingerprint(data_dir) -> str:

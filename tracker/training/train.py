@@ -158,7 +158,7 @@ def with_exact_boxes(cs, mu, cs_exact, mu_exact, tr, va):
     if len(cs_exact) != len(cs) or not np.array_equal(cs_exact.obj_id, cs.obj_id):
         raise UserError("the exact-box crops do not match the jittered ones (different split or seed?)")
     n = len(cs)
-    return (CropSet.concat(cs, cs_exact), np.concatenate([mu, mu_exact]),
+    return (CropSet.concat(cs.labels(), cs_exact.labels()), np.concatenate([mu, mu_exact]),
             np.concatenate([tr, tr + n]), np.concatenate([va, va + n]))
 
 
@@ -353,7 +353,7 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
     from tracker.core.meshes import load_models
     from tracker.training.nets.autoencoder import (ENCODERS, FROZEN, FROZEN_THROUGH, METHODS, AutoEncoder,
                                                    crop_size_problem)
-    from tracker.training.nets.fit import (CachedInputs, cache_frozen_outputs, encode_all, onehot, to_tensor,
+    from tracker.training.nets.fit import (CachedInputs, Rows, cache_frozen_outputs, encode_all, onehot, to_tensor,
                                            train_autoencoder)
     from tracker.training.nets.precision import resolve, resolve_device
     if method not in METHODS:
@@ -414,6 +414,7 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
         minutes = dd.max_over_ranks(minutes)  # one budget (and step-size schedule) on every process
     frozen_front = encoder in FROZEN
     recon = min(size, FROZEN_RECON_SIZE) if frozen_front else size
+    torch.manual_seed(seed)  # the starting weights from the seed too (else from whatever ran before)
     model = AutoEncoder(method, size, latent, n_obj, encoder=encoder, pretrained=pretrained, recon_size=recon)
     n_params = sum(p.numel() for p in model.parameters())
     log(f"{method}: {n_params / 1e6:.2f} M parameters, {len(tr)} train / {len(va)} validation crops, "
@@ -427,8 +428,8 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
             model.encoder.frozen, cs.x, path, n_aug=FROZEN_AUGMENTATIONS, seed=seed, log=log))
         if recon != size:
             y_out = np.stack([cv2.resize(im, (recon, recon), interpolation=cv2.INTER_AREA) for im in cs.y])
-    hist = train_autoencoder(model, x_in.subset(tr) if frozen_front else x_in[tr], y_out[tr], c_all[tr],
-                             x_in.subset(va) if frozen_front else x_in[va], y_out[va], c_all[va], work,
+    hist = train_autoencoder(model, x_in.subset(tr) if frozen_front else Rows(x_in, tr), Rows(y_out, tr), c_all[tr],
+                             x_in.subset(va) if frozen_front else Rows(x_in, va), Rows(y_out, va), c_all[va], work,
                              minutes=minutes, seed=seed, init_from=init_from, precision=precision, log=log,
                              lr=lr, batch=batch, device=device, kl_warmup=kl_warmup, lr_schedule=lr_schedule,
                              max_steps=max_steps)
@@ -439,8 +440,12 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
     dd.finish()
     cond = c_all if method == "cvam" else None
     mu = encode_all(model, cs.x, cond)
+    export_x = cs.x[va[:16]]  # the export's parity check; from here on the heads need no pixels
+    del x_in, y_out
+    cs = cs.labels()
     cs_exact = crops(jitter=False)
     mu_exact = encode_all(model, cs_exact.x, cond)
+    cs_exact = cs_exact.labels()
     cs_h, mu_h, tr_h, va_h = with_exact_boxes(cs, mu, cs_exact, mu_exact, tr, va)
 
     models_info = load_models_info(models_info_path) if models_info_path else None
@@ -465,7 +470,7 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
         (dest / "meshes").mkdir(parents=True, exist_ok=True)
         save_head(head, dest / "pose_head.json", dest / "pose_head.npz")
         save_codebook(codebook, dest / "codebook.npz")
-        xs = to_tensor(cs.x[va[:16]]).numpy()
+        xs = to_tensor(export_x).numpy()
         diff = export_encoder(model, size, model.n_cond, dest / "encoder.onnx", xs, c_all[va[:16]].numpy() if model.n_cond else None)
         log(f"encoder.onnx: max |onnx - torch| = {diff:.2e}")
         if diff > 1e-4:
@@ -578,6 +583,7 @@ def refit_heads(model_dir, data_dir, out_dir=None, seed: int = 0, reg_minutes: f
     cs = bundle_training_crops(src.root, src.manifest, data_dir, seed=seed, log=log, jitter_scale=jitter_scale)
     cs_exact = bundle_training_crops(src.root, src.manifest, data_dir, seed=seed, jitter=False, log=log)
     mu, mu_exact = codes(cs, True), codes(cs_exact, False)
+    cs, cs_exact = cs.labels(), cs_exact.labels()  # the heads need no pixels
     log(f"codes of {len(cs) + len(cs_exact)} crops in {time.perf_counter() - t0:.0f} s")
     rng = np.random.default_rng(seed)
     rng.permutation(len(cs))  # the draws of train_bundle, so the codebook views are the same

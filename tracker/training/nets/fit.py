@@ -135,6 +135,20 @@ def cache_frozen_outputs(frozen: torch.nn.Module, x_u8: np.ndarray, path, n_aug:
     return CachedInputs(path)
 
 
+class Rows:
+    """Rows ``rows`` of ``arr``, taken when indexed (``Rows(a, r)[i] == a[r[i]]``): a training
+    split of the crops without copying them (a copy per split doubled the encoder stage's memory)."""
+
+    def __init__(self, arr: np.ndarray, rows):
+        self.arr, self.rows = arr, np.asarray(rows)
+
+    def __len__(self) -> int:
+        return len(self.rows)
+
+    def __getitem__(self, idx) -> np.ndarray:
+        return self.arr[self.rows[idx]]
+
+
 def batch_inputs(x, idx, g: torch.Generator | None = None) -> torch.Tensor:
     """The network's input for crops ``idx``: uint8 images (augmented with ``g``) or cached
     frozen-front outputs (a random augmented version with ``g``)."""
