@@ -96,16 +96,19 @@ def render(req: dict) -> None:
         o.hide_render = False
         o.matrix_world = F @ Matrix(((R[0], R[1], R[2], t[0] / 1000), (R[3], R[4], R[5], t[1] / 1000),
                                      (R[6], R[7], R[8], t[2] / 1000), (0, 0, 0, 1))) @ SCALE
-    for sun in STATE["suns"]:
-        bpy.data.objects.remove(sun, do_unlink=True)
-    STATE["suns"] = []
-    for i, (d, rgb, intensity) in enumerate(req["lights"]):
-        light = bpy.data.lights.new(f"sun{i}", type="SUN")
-        light.energy, light.color, light.angle = float(intensity), rgb, 0.1
-        sun = bpy.data.objects.new(f"sun{i}", light)
+    suns = STATE["suns"]  # kept from image to image (new ones each time would pile up as orphan data)
+    while len(suns) < len(req["lights"]):
+        sun = bpy.data.objects.new(f"sun{len(suns)}", bpy.data.lights.new(f"sun{len(suns)}", type="SUN"))
+        sun.data.angle = 0.1
         sc.collection.objects.link(sun)
+        suns.append(sun)
+    for i, sun in enumerate(suns):
+        if i >= len(req["lights"]):
+            sun.data.energy = 0.0
+            continue
+        d, rgb, intensity = req["lights"][i]
+        sun.data.energy, sun.data.color = float(intensity), rgb
         sun.rotation_euler = (F.to_3x3() @ Vector(d)).to_track_quat("-Z", "Y").to_euler()  # a sun shines along its -z
-        STATE["suns"].append(sun)
     sc.world.node_tree.nodes["Background"].inputs[1].default_value = float(req["ambient"])
     sc.render.filepath = req["out"]
     bpy.ops.render.render(write_still=True)
