@@ -48,6 +48,7 @@ HARD_DISTRACTORS_PER_IMAGE = (2, 8)
 DISTRACTOR_SETS = {"plain": (12, 0), "hard": (36, 0), "household": (18, 18)}
 DISTRACTOR_STYLES = tuple(DISTRACTOR_SETS)
 LIGHTING_STYLES = ("camera", "overhead")
+RENDERERS = ("raster", "cycles")
 PHOTO_DISTRACTORS = ("hard", "household")  # textured from the photos, tinted, 2-8 per image
 SHADOW_POINTS = 400  # about this many of an object's vertices outline its shadow (randomise.cast_shadows)
 
@@ -493,8 +494,8 @@ def generate(cfg: SynthConfig, out_dir, n_images: int, workers: int = 2, batch: 
         raise UserError(f"unknown distractor style '{cfg.distractors}' (choose from {', '.join(DISTRACTOR_STYLES)})")
     if cfg.lighting not in LIGHTING_STYLES:
         raise UserError(f"unknown lighting '{cfg.lighting}' (choose from {', '.join(LIGHTING_STYLES)})")
-    if cfg.renderer not in ("raster", "cycles"):
-        raise UserError(f"unknown renderer '{cfg.renderer}' (choose from raster, cycles)")
+    if cfg.renderer not in RENDERERS:
+        raise UserError(f"unknown renderer '{cfg.renderer}' (choose from {', '.join(RENDERERS)})")
     if cfg.renderer == "cycles":
         if cfg.p_gloss > 0:
             raise UserError("--gloss draws the rasteriser's materials; with --renderer cycles use --gloss 0")
