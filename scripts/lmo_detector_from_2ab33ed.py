@@ -19,7 +19,7 @@ COMMIT = "2ab33ed"
 
 def main(bundle: str) -> None:
     from tracker.core.bundle import update_manifest
-    from tracker.research.detector_ensemble import dequantise_graph
+    from tracker.training.detector_ensemble import dequantise_graph
 
     def show(path: str) -> bytes:
         return subprocess.run(["git", "show", f"{COMMIT}:{path}"], check=True, capture_output=True).stdout
@@ -33,7 +33,7 @@ def main(bundle: str) -> None:
         def change(m, stage):
             shutil.copy(flt, Path(stage) / "detector.onnx")
             det = {k: v for k, v in old.items() if k != "int8"}
-            det["float32_from_int8"] = {"method": "tracker.research.detector_ensemble.dequantise_graph", **counts,
+            det["float32_from_int8"] = {"method": "tracker.training.detector_ensemble.dequantise_graph", **counts,
                                         "int8_was": old["int8"]}
             det["provenance"] = {"bundle_commit": COMMIT,
                                  "note": "the detector of models/lmo before the 480-minute build (two joined "

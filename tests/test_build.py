@@ -83,6 +83,14 @@ def test_recipes_recorded_before_decimated_renders_keep_the_full_meshes():
     assert bb.Recipe.from_dict(old).head_sets == 1 and bb.Recipe(models="m").head_sets == 3  # one set before stop 51
     # the COCO-pretrained detector since stop 57; a recipe recorded before it keeps the plain one
     assert bb.Recipe.from_dict(old).detector_backbone == "plain" and bb.Recipe(models="m").detector_backbone == "nanodet"
+    # NanoDet at 416 x 320 stored int8 since stop 66; a recipe recorded before it keeps 320 x 240 float32
+    before = bb.Recipe.from_dict(old)
+    assert (before.detector_input, before.detector_int8) == ([320, 240], False)
+    assert (bb.Recipe(models="m").detector_input, bb.Recipe(models="m").detector_int8) == ([416, 320], True)
+    # ... and its detector stage keeps the key it was cached under then (the input and int8 were not in it)
+    assert bb.detector_key(before, "e", "r", 50.0) == bb._key("detector", "e", "r", 50.0, "plain", 3)
+    assert len({bb.detector_key(dataclasses.replace(before, **c), "e", "r", 50.0)
+                for c in ({}, {"detector_input": [416, 320]}, {"detector_int8": True})}) == 3
 
 
 def test_build_makes_a_bundle_resumes_and_records_its_recipe(small, tmp_path, monkeypatch):
@@ -122,6 +130,12 @@ def test_build_makes_a_bundle_resumes_and_records_its_recipe(small, tmp_path, mo
     assert s["minutes_all_runs"] == round(sum(v["seconds"] for v in after.values()) / 60, 1)
     b = open_bundle(out)  # verified: every file hashed, the report too
     assert b.manifest.has_detector and sorted(b.manifest.obj_ids) == [1, 2]
+    # the recipe's detector: trained at 416 x 320, stored int8 calibrated on the renders it trained on
+    d = b.manifest.detector
+    assert (d["input_w"], d["input_h"]) == (416, 320) and d["int8"]["calibration_data"].endswith("split_all")
+    import onnx
+    assert "QuantizeLinear" in {n.op_type for n in onnx.load(str(b.path("detector"))).graph.node}
+    assert "416 x 320 int8" in (out / "report" / "report.md").read_text()
     assert b.manifest.heads["ensemble"]["seeds"] == [0, 1, 2]  # three head sets averaged
     from tracker.runtime.heads import HeadEnsemble, load_bundle_head
     assert isinstance(load_bundle_head(b), HeadEnsemble) and len(load_bundle_head(b).members) == 3
@@ -167,6 +181,10 @@ def test_build_refuses_bad_input_in_one_line(small, tmp_path):
         bb.build(bb.Recipe(models=str(src), minutes=0.05, objects=[1, 7]), tmp_path / "out2", log=lambda m: None)
     with pytest.raises(UserError, match="--head-sets must be"):
         bb.build(bb.Recipe(models=str(src), minutes=0.05, head_sets=0), tmp_path / "out3", log=lambda m: None)
+    for wh in ([417, 320], [416], [32, 32]):
+        with pytest.raises(UserError, match="--detector-input must be"):
+            bb.build(bb.Recipe(models=str(src), minutes=0.05, detector_input=wh), tmp_path / "out3",
+                     log=lambda m: None)
     for encoder, size, step in (("plain", 70, 16), ("lite0", 48, 32)):  # before any rendering
         with pytest.raises(UserError, match=f"--encoder {encoder} takes crops a multiple of {step} pixels"):
             bb.build(bb.Recipe(models=str(src), minutes=0.05, encoder=encoder, size=size), tmp_path / "out4",
@@ -191,6 +209,8 @@ def test_the_shipped_bundle_records_the_one_command_that_built_it():
     (lambda r: r.update(seed=-1), "'seed' must be a whole number"),
     (lambda r: r.update(objects=[0]), "'objects' must be a list of object ids"),
     (lambda r: r.update(encoder=3), "'encoder' must be text"),
+    (lambda r: r.update(detector_input=[416, "320"]), "'detector_input' must be two whole numbers"),
+    (lambda r: r.update(detector_int8="yes"), "'detector_int8' must be true or false"),
 ])
 def test_a_hand_edited_recipe_is_one_line_error(tmp_path, change, match):
     b = tmp_path / "b"

@@ -355,7 +355,7 @@ def test_a_detector_can_start_from_a_bundles_exported_network(tiny_detector_bund
     with pytest.raises(UserError, match=r"with --init-from a bundle \(its BatchNorms frozen\): rerun"):
         train_detector(tiny_bundle.parent / "split", root, max_steps=10, width=8, batch=2, lr=1e-4, log=lambda *a: None)
     joined = tmp_path / "joined"
-    from tracker.research.detector_ensemble import join_detectors
+    from tracker.training.detector_ensemble import join_detectors
     join_detectors(tiny_detector_bundle, [], out_dir=joined, mirror="both", log=lambda *a: None)
     with pytest.raises(UserError, match="joined or quantised already; start from the bundle of one"):
         _init_weights(torch, joined, 8, classes)
@@ -363,7 +363,7 @@ def test_a_detector_can_start_from_a_bundles_exported_network(tiny_detector_bund
 
 def test_amodal_targets_are_whole_silhouettes_clipped_to_the_image(tiny_bundle, tmp_path):
     from tracker.runtime.detector import DetectorSpec
-    from tracker.research.detector_ensemble import join_detectors
+    from tracker.training.detector_ensemble import join_detectors
     from tracker.training.detector_train import load_detection_set, target_box, train_detector
     info = {"bbox_visib": [10, 20, 30, 40], "bbox_obj": [-5, 15, 50, 60]}
     assert target_box(info, "visible", 640, 480) == [10, 20, 30, 40]
@@ -572,7 +572,7 @@ def test_join_detectors_averages_the_networks_and_quantises_them(tiny_detector_b
     import onnx
     from tracker.core.bundle import open_bundle, update_manifest
     from tracker.runtime.detector import Detector, letterbox, normalise
-    from tracker.research.detector_ensemble import join_detectors
+    from tracker.training.detector_ensemble import join_detectors
     from tracker.training.detector_train import train_detector
     quiet = dict(log=lambda *a: None)
     split = tiny_bundle.parent / "split"
@@ -619,7 +619,7 @@ def test_join_detectors_averages_the_networks_and_quantises_them(tiny_detector_b
     C = len(q.detector["classes"])
     # on the images it was calibrated on (min-max ranges: nothing clipped) int8 follows the float graph;
     # a real frame can reach past the ranges of three renders of a network trained for a second
-    from tracker.research.detector_ensemble import calibration_inputs
+    from tracker.training.detector_ensemble import calibration_inputs
     x_cal = calibration_inputs(split, Detector(open_bundle(tmp_path / "int8")).spec, 3)
     for x in x_cal[:, None]:
         assert np.abs(maps_of(tmp_path / "int8", x)[0, :C] - maps_of(tmp_path / "joined", x)[0, :C]).max() < 0.1
@@ -662,7 +662,7 @@ def test_join_detectors_averages_the_networks_and_quantises_them(tiny_detector_b
     # one network and its mirror image: the joined output is mirror-symmetric (x offsets turned)
     mm = join_detectors(tiny_detector_bundle, [], out_dir=tmp_path / "mirror", mirror="both", **quiet)
     assert mm.detector["ensemble"]["mirror"] == "both" and mm.detector["ensemble"]["members"] == 1
-    from tracker.research.detector_ensemble import mirror_fix
+    from tracker.training.detector_ensemble import mirror_fix
     d = Detector(open_bundle(tmp_path / "mirror"))
     x = normalise(letterbox(frame, d.spec.input_w, d.spec.input_h, d.spec.pad_value)[0][None], d.spec)
     scale, shift = mirror_fix(a.shape[1])
@@ -715,7 +715,7 @@ def _check_requantise(tmp_path, split, x_cal, C, maps_of, quiet):
     import onnx
     from onnx import numpy_helper
     from tracker.core.bundle import sha256
-    from tracker.research.detector_ensemble import dequantise_graph, requantise_detector
+    from tracker.training.detector_ensemble import dequantise_graph, requantise_detector
     from tracker.runtime.detector import run_graph
     int8 = tmp_path / "int8" / "detector.onnx"
     n = dequantise_graph(int8, tmp_path / "float.onnx")
@@ -832,7 +832,7 @@ def test_ema_averages_the_weights_and_is_what_is_exported(tiny_bundle, tmp_path)
 
 
 def test_join_detectors_refuses_a_from_that_is_no_bundle(tiny_detector_bundle, tmp_path):
-    from tracker.research.detector_ensemble import join_detectors
+    from tracker.training.detector_ensemble import join_detectors
     with pytest.raises(UserError, match=f"{tmp_path}: not a model bundle"):
         join_detectors(tiny_detector_bundle, [tmp_path], out_dir=tmp_path / "j", log=lambda *a: None)
     assert not (tmp_path / "j").exists()

@@ -44,7 +44,7 @@ def cmd_join_heads(args) -> int:
 
 
 def cmd_join_detectors(args) -> int:
-    from tracker.research.detector_ensemble import join_detectors
+    from tracker.training.detector_ensemble import join_detectors
     extra = {"calibration_images": args.calibration_images} if args.calibration_images else {}
     if args.score_thresh is not None:
         extra["score_thresh"] = args.score_thresh
@@ -55,7 +55,7 @@ def cmd_join_detectors(args) -> int:
 
 
 def cmd_requantise_detector(args) -> int:
-    from tracker.research.detector_ensemble import requantise_detector
+    from tracker.training.detector_ensemble import requantise_detector
     extra = {"calibration_images": args.calibration_images} if args.calibration_images else {}
     requantise_detector(args.model, args.int8, out_dir=args.out, weight_bits=args.weight_bits,
                         command="app.py " + " ".join(sys.argv[1:]), **extra)

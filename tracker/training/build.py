@@ -9,7 +9,10 @@ Stages, run in order; everything they make lives in ``MODEL_DIR.work/`` except t
    objects (several instances per image), so a build of one or two objects gets as many crops
    per rendered image as one of eight
 4. ``encoder``   the autoencoder and its pose heads (``train``) on both splits
-5. ``detector``  the detector (``train-detector``) on both splits
+5. ``detector``  the detector (``train-detector``) on both splits, at ``detector_input``, then
+   stored int8 calibrated on its training renders (``lab join-detectors --int8``'s function;
+   stop 65: NanoDet at 416 x 320 int8 against 320 x 240 float, dev detector-box mean +0.037
+   [+0.019, +0.054] and 9.5 against 11.2 ms a frame)
 6. ``check``     a fresh held-out render split, and ``eval`` on it with ground-truth and
    detector boxes
 7. ``report``    ``MODEL_DIR/report/report.md`` + PNGs: sample renders next to their
@@ -58,13 +61,15 @@ MIN_IMAGES = 60
 # crops) peaked at 9.4 GB against 21.2 GB before, about 0.25 MB an image at 64 px. The cap keeps
 # the older figure until a build shows that the renders it would add pay (they cost epochs).
 BYTES_PER_IMAGE_64 = 0.55e6
-DET_BYTES_PER_IMAGE = 0.23e6
+DET_BYTES_PER_IMAGE = 0.23e6  # at 320 x 240; in proportion to the input's pixels
 BASE_BYTES = 1.5e9
 MEMORY_SHARE = 0.75
 CHECK_IMAGES = 40
 # the detector's peak learning rate by backbone: pretrained weights are fine-tuned at half the
 # from-scratch recipe's (stop 57's arms, set before their run)
 DETECTOR_LR = {"nanodet": 1e-3}
+# the detector's input before stop 66 (its network float32): what older recipes and stage keys hold
+DETECTOR_INPUT_BEFORE = [320, 240]
 STAGES = ("models", "render", "render-det", "encoder", "detector", "check", "report")
 
 
@@ -84,6 +89,10 @@ class Recipe:
     # the COCO-pretrained NanoDet trunk (stop 57: against the plain one at the same data and 40-minute
     # budget, dev detector-box mean +0.038 [+0.010, +0.067], AP50 0.453 -> 0.547; detect 5 -> 12.5 ms)
     detector_backbone: str = "nanodet"
+    # the detector's input [W, H] and whether it is stored int8 (stop 65: 416 x 320 int8 against
+    # 320 x 240 float32, dev detector-box mean +0.037 [+0.019, +0.054], 9.5 against 11.2 ms a frame)
+    detector_input: list[int] = field(default_factory=lambda: [416, 320])
+    detector_int8: bool = True
     workers: int = 2
     device: str = "auto"
     # the renders' meshes decimated to about this many faces (synth's default); 0: the full meshes
@@ -109,22 +118,26 @@ class Recipe:
         known.setdefault("mesh_faces", 0)  # recorded before stop 47: the full meshes, as they were built
         known.setdefault("head_sets", 1)  # recorded before stop 51: one head set
         known.setdefault("detector_backbone", "plain")  # recorded before it was kept
+        known.setdefault("detector_input", list(DETECTOR_INPUT_BEFORE))  # recorded before stop 66: 320 x 240,
+        known.setdefault("detector_int8", False)  # float32
         return cls(**known)
 
 
-def memory_cap(size: int = 64, ram_bytes: float | None = None) -> int:
-    """The most images per split (two splits) whose crops at ``size`` px and detector inputs fit
-    in :data:`MEMORY_SHARE` of ``ram_bytes`` (default: this machine's memory) at the build's peak."""
+def memory_cap(size: int = 64, ram_bytes: float | None = None, detector_input=(320, 240)) -> int:
+    """The most images per split (two splits) whose crops at ``size`` px and detector inputs at
+    ``detector_input`` fit in :data:`MEMORY_SHARE` of ``ram_bytes`` (default: this machine's
+    memory) at the build's peak."""
     if ram_bytes is None:
         ram_bytes = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-    per_image = max(BYTES_PER_IMAGE_64 * (size / 64) ** 2, DET_BYTES_PER_IMAGE)
+    w, h = detector_input
+    per_image = max(BYTES_PER_IMAGE_64 * (size / 64) ** 2, DET_BYTES_PER_IMAGE * w * h / (320 * 240))
     return max(MIN_IMAGES, int((MEMORY_SHARE * ram_bytes - BASE_BYTES) / per_image / 2))
 
 
 def plan(recipe: Recipe, ram_bytes: float | None = None) -> dict:
     """Minutes per stage, seconds and most images per split for ``recipe.minutes`` (the rule above)."""
     m = float(recipe.minutes)
-    cap = max(MIN_IMAGES, recipe.max_images or memory_cap(recipe.size, ram_bytes))
+    cap = max(MIN_IMAGES, recipe.max_images or memory_cap(recipe.size, ram_bytes, recipe.detector_input))
     images = lambda share: max(MIN_IMAGES, min(cap, int(share * m * 60 * MAX_RATE)))  # noqa: E731
     return {"render_seconds": round(SHARES["render"] * m * 60, 1), "render_images": images(SHARES["render"]),
             "render_det_seconds": round(SHARES["render-det"] * m * 60, 1),
@@ -214,6 +227,14 @@ def _key(*parts) -> str:
     return hashlib.sha1(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:12]
 
 
+def detector_key(recipe: Recipe, k_enc: str, k_render_det: str, minutes: float) -> str:
+    """The detector stage's key: its input and int8 only where they differ from before stop 66
+    (320 x 240, float32), so that a build begun before then resumes its detector stage."""
+    return _key("detector", k_enc, k_render_det, minutes, recipe.detector_backbone, recipe.seed,
+                *([list(recipe.detector_input)] if list(recipe.detector_input) != DETECTOR_INPUT_BEFORE else []),
+                *(["int8"] if recipe.detector_int8 else []))
+
+
 def build(recipe: Recipe, out_dir, log=print, cluster=None) -> dict:
     """Run (or resume) every stage; returns the report's summary. ``cluster``: a
     :class:`tracker.training.cluster.RayCluster` (entered) that renders and trains instead of
@@ -230,6 +251,8 @@ def build(recipe: Recipe, out_dir, log=print, cluster=None) -> dict:
         raise UserError(f"--head-sets must be a whole number of at least 1, not {recipe.head_sets}")
     if recipe.max_images is not None and not (isinstance(recipe.max_images, int) and recipe.max_images >= 1):
         raise UserError(f"--max-images must be a whole number of at least 1, not {recipe.max_images}")
+    if problem := detector_input_problem(recipe.detector_input):
+        raise UserError(f"--detector-input {problem}")
     from tracker.training.prepare import mesh_files
     mesh_files(recipe.models)  # a bad --models fails before anything is written
     from tracker.training.train import require_torch
@@ -371,7 +394,8 @@ def build(recipe: Recipe, out_dir, log=print, cluster=None) -> dict:
     stage(4, "encoder", k_enc, do_encoder)
 
     # 5. detector
-    k_det = _key("detector", k_enc, k_render_det, p["detector_minutes"], recipe.detector_backbone, recipe.seed)
+    det_input = list(recipe.detector_input)
+    k_det = detector_key(recipe, k_enc, k_render_det, p["detector_minutes"])
 
     def do_detector():
         from tracker.core.bundle import open_bundle
@@ -383,9 +407,15 @@ def build(recipe: Recipe, out_dir, log=print, cluster=None) -> dict:
             data_dir=joined(), bundle_dir=out, minutes=p["detector_minutes"], seed=recipe.seed, occlusion=0.5,
             stage_minutes=p["detector_minutes"], batch=min(32, max(2, n // 2)),
             lr=DETECTOR_LR.get(recipe.detector_backbone, 2e-3), backbone=recipe.detector_backbone,
+            input_w=det_input[0], input_h=det_input[1],
             device=recipe.device, command=f"app.py build --models {recipe.models} --out {out}"),
             p["detector_minutes"])
         v = (_written(open_bundle, out, "detector").manifest.detector or {})["training"]["validation_synthetic"]
+        if recipe.detector_int8:  # here, not on the cluster: seconds of work on the renders it trained on
+            from tracker.training.detector_ensemble import join_detectors
+            q = join_detectors(out, [], int8_data=split_all, log=log,
+                               command=f"app.py build --models {recipe.models} --out {out}").detector["int8"]
+            how["int8_heatmap_max_abs_diff"] = round(q["heatmap_max_abs_diff"], 4)
         return {"ap": v["ap"], "ap50": v["ap50"], **how}
     stage(5, "detector", k_det, do_detector)
 
@@ -507,6 +537,17 @@ _WHOLE = ("seed", "size", "latent", "workers", "mesh_faces", "head_sets")
 _TEXT = ("models", "prior", "units", "method", "encoder", "detector_backbone", "device")
 
 
+def detector_input_problem(wh) -> str | None:
+    """What is wrong with a detector input [W, H] (None: nothing): two whole numbers, multiples
+    of the detector's stride (8), 64 to 1280."""
+    if not (isinstance(wh, (list, tuple)) and len(wh) == 2
+            and all(isinstance(v, int) and not isinstance(v, bool) for v in wh)):
+        return f"must be two whole numbers W H, not {wh!r}"
+    if not all(64 <= v <= 1280 and v % 8 == 0 for v in wh):
+        return f"must be two multiples of 8 from 64 to 1280 (e.g. 416 320), not {wh[0]} x {wh[1]}"
+    return None
+
+
 def recipe_problem(rec: dict) -> str | None:
     """What is wrong with a recorded recipe (None: nothing), before :class:`Recipe` is made of it."""
     def whole(v) -> bool:
@@ -528,4 +569,8 @@ def recipe_problem(rec: dict) -> str | None:
     mx = rec.get("max_images")
     if mx is not None and not (whole(mx) and mx >= 1):
         return f"'max_images' must be a whole number >= 1, not {mx!r}"
+    if "detector_input" in rec and (problem := detector_input_problem(rec["detector_input"])):
+        return f"'detector_input' {problem}"
+    if "detector_int8" in rec and not isinstance(rec["detector_int8"], bool):
+        return f"'detector_int8' must be true or false, not {rec['detector_int8']!r}"
     return None

@@ -20,8 +20,8 @@ def write_build_report(folder, work_root, stages: dict, recipe, planned: dict, n
     check = stages.get("check", {})
     lines = ["# Build report", "",
              f"Made by `app.py build --models {recipe.models} --minutes {recipe.minutes:g}` "
-             f"(prior `{recipe.prior}`, encoder `{recipe.encoder}` {recipe.size} px, detector `{recipe.detector_backbone}`, "
-             f"seed {recipe.seed}). Objects: " + ", ".join(f"{k} {v}" for k, v in sorted(names.items(), key=lambda x: int(x[0]))) + ".",
+             f"(prior `{recipe.prior}`, encoder `{recipe.encoder}` {recipe.size} px, detector `{recipe.detector_backbone}` "
+             f"{recipe.detector_input[0]} x {recipe.detector_input[1]}{' int8' if recipe.detector_int8 else ''}, seed {recipe.seed}). Objects: " + ", ".join(f"{k} {v}" for k, v in sorted(names.items(), key=lambda x: int(x[0]))) + ".",
              "", "## On held-out renders", "",
              f"{planned['check_images']} fresh synthetic images (seed {recipe.seed + 1000}), never trained on. "
              "Renders flatter the tracker: real frames score lower (docs/models.md).", "",
