@@ -118,8 +118,8 @@ class Recipe:
         known.setdefault("mesh_faces", 0)  # recorded before stop 47: the full meshes, as they were built
         known.setdefault("head_sets", 1)  # recorded before stop 51: one head set
         known.setdefault("detector_backbone", "plain")  # recorded before it was kept
-        known.setdefault("detector_input", list(DETECTOR_INPUT_BEFORE))  # recorded before stop 66: 320 x 240,
-        known.setdefault("detector_int8", False)  # float32
+        known.setdefault("detector_input", list(DETECTOR_INPUT_BEFORE))  # recorded before stop 66:
+        known.setdefault("detector_int8", False)  # 320 x 240, float32
         return cls(**known)
 
 

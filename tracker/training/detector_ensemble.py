@@ -1,8 +1,8 @@
 """``app.py lab join-detectors``: one ``detector.onnx`` whose output is the mean of the outputs of
 several detectors trained apart (``train-detector``), optionally quantised to int8 so that it
-runs in about the time of one float network; ``build`` stores its one network int8 with it. The run-time contract does not change: one input,
-one (1, C + 4, h, w) output, decoded by :mod:`tracker.runtime.detector`. Needs ``onnx`` (the training
-extra), never torch."""
+runs in about the time of one float network; ``build`` stores its one network int8 with it.
+The run-time contract does not change: one input, one (1, C + 4, h, w) output, decoded by
+:mod:`tracker.runtime.detector`. Needs ``onnx`` (the training extra), never torch."""
 from __future__ import annotations
 
 import sys
