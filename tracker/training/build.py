@@ -443,9 +443,12 @@ def build(recipe: Recipe, out_dir, log=print, cluster=None) -> dict:
     def do_report():
         _record_recipe(out, root, recipe, p, state.d)
         return {"report": str(out / "report" / "report.md")}
-    # (mesh_faces 0, max_images and names None: the keys of builds made before they were recorded)
+    # (mesh_faces 0, max_images and names None, the detector's input and int8 as before stop 66:
+    # the keys of builds made before they were recorded)
+    old = {"detector_input": DETECTOR_INPUT_BEFORE, "detector_int8": False}
     recorded = {k: v for k, v in asdict(recipe).items()
-                if (k != "mesh_faces" or v) and (k not in ("max_images", "names") or v is not None)}
+                if (k != "mesh_faces" or v) and (k not in ("max_images", "names") or v is not None)
+                and not (k in old and v == old[k])}
     stage(7, "report", _key("report", k_check, recorded), do_report)
     summary["minutes"] = round((time.perf_counter() - t_start) / 60, 1)
     summary["minutes_all_runs"] = round(sum(state.d[s].get("seconds", 0.0) for s in STAGES) / 60, 1)

@@ -398,8 +398,10 @@ def join_detectors(model_dir, others, out_dir=None, int8_data=None, calibration_
         raise UserError(f"--score-thresh must lie between 0 and 1, not {score_thresh}")
     if int8_data is not None:
         _check_split(int8_data)
-    src, spec0, d0, p0 = float_detector(model_dir, "join the detectors it was made from")
-    members = [(model_dir, spec0, d0, p0)] + [(o, *float_detector(o, "join the detectors it was made from")[1:]) for o in others]
+    use = ("join the float networks it was made from (a bundle of 'build' keeps its float32 detector with "
+           "--no-detector-int8)")
+    src, spec0, d0, p0 = float_detector(model_dir, use)
+    members = [(model_dir, spec0, d0, p0)] + [(o, *float_detector(o, use)[1:]) for o in others]
     for path, spec, _, _ in members[1:]:
         diff = [k for k in CONTRACT if getattr(spec, k) != getattr(spec0, k)]
         if diff:
