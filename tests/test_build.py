@@ -130,9 +130,11 @@ def test_build_makes_a_bundle_resumes_and_records_its_recipe(small, tmp_path, mo
     assert s["minutes_all_runs"] == round(sum(v["seconds"] for v in after.values()) / 60, 1)
     b = open_bundle(out)  # verified: every file hashed, the report too
     assert b.manifest.has_detector and sorted(b.manifest.obj_ids) == [1, 2]
-    # the recipe's detector: trained at 416 x 320, stored int8 calibrated on the renders it trained on
+    # the recipe's detector: trained at 416 x 320, stored int8 (7-bit weights) calibrated on the renders
+    # it trained on
     d = b.manifest.detector
     assert (d["input_w"], d["input_h"]) == (416, 320) and d["int8"]["calibration_data"].endswith("split_all")
+    assert "7 bits" in d["int8"]["method"]
     import onnx
     assert "QuantizeLinear" in {n.op_type for n in onnx.load(str(b.path("detector"))).graph.node}
     assert "416 x 320 int8" in (out / "report" / "report.md").read_text()

@@ -12,7 +12,8 @@ Stages, run in order; everything they make lives in ``MODEL_DIR.work/`` except t
 5. ``detector``  the detector (``train-detector``) on both splits, at ``detector_input``, then
    stored int8 calibrated on its training renders (``lab join-detectors --int8``'s function;
    stop 65: NanoDet at 416 x 320 int8 against 320 x 240 float, dev detector-box mean +0.037
-   [+0.019, +0.054] and 9.5 against 11.2 ms a frame)
+   [+0.019, +0.054] and 9.5 against 11.2 ms a frame), its weights in 7 bits (stop 66: the
+   same on every CPU, no figure's interval below 8 bits')
 6. ``check``     a fresh held-out render split, and ``eval`` on it with ground-truth and
    detector boxes
 7. ``report``    ``MODEL_DIR/report/report.md`` + PNGs: sample renders next to their
@@ -70,6 +71,10 @@ CHECK_IMAGES = 40
 DETECTOR_LR = {"nanodet": 1e-3}
 # the detector's input before stop 66 (its network float32): what older recipes and stage keys hold
 DETECTOR_INPUT_BEFORE = [320, 240]
+# the int8 detector's weight bits: 7 cannot saturate the 16-bit sums of CPUs without 8-bit dot
+# products (AVX2), so every CPU computes the same; against 8 bits on the same network (stop 66),
+# dev detector-box mean -0.004 [-0.017, +0.008], no figure's interval below 0
+DETECTOR_WEIGHT_BITS = 7
 STAGES = ("models", "render", "render-det", "encoder", "detector", "check", "report")
 
 
@@ -413,7 +418,7 @@ def build(recipe: Recipe, out_dir, log=print, cluster=None) -> dict:
         v = (_written(open_bundle, out, "detector").manifest.detector or {})["training"]["validation_synthetic"]
         if recipe.detector_int8:  # here, not on the cluster: seconds of work on the renders it trained on
             from tracker.training.detector_ensemble import join_detectors
-            q = join_detectors(out, [], int8_data=split_all, log=log,
+            q = join_detectors(out, [], int8_data=split_all, weight_bits=DETECTOR_WEIGHT_BITS, log=log,
                                command=f"app.py build --models {recipe.models} --out {out}").detector["int8"]
             how["int8_heatmap_max_abs_diff"] = round(q["heatmap_max_abs_diff"], 4)
         return {"ap": v["ap"], "ap50": v["ap50"], **how}
