@@ -69,8 +69,9 @@ CHECK_IMAGES = 40
 # the detector's peak learning rate by backbone: pretrained weights are fine-tuned at half the
 # from-scratch recipe's (stop 57's arms, set before their run)
 DETECTOR_LR = {"nanodet": 1e-3}
-# the detector's input before stop 66 (its network float32): what older recipes and stage keys hold
-DETECTOR_INPUT_BEFORE = [320, 240]
+# the detector's recipe fields before stop 66 (320 x 240, float32): what older recipes read as,
+# and what the stage keys leave out (so that older builds resume)
+DETECTOR_BEFORE = {"detector_input": [320, 240], "detector_int8": False}
 # the int8 detector's weight bits: 7 cannot saturate the 16-bit sums of CPUs without 8-bit dot
 # products (AVX2), so every CPU computes the same; against 8 bits on the same network (stop 66),
 # dev detector-box mean -0.004 [-0.017, +0.008], no figure's interval below 0
@@ -123,8 +124,8 @@ class Recipe:
         known.setdefault("mesh_faces", 0)  # recorded before stop 47: the full meshes, as they were built
         known.setdefault("head_sets", 1)  # recorded before stop 51: one head set
         known.setdefault("detector_backbone", "plain")  # recorded before it was kept
-        known.setdefault("detector_input", list(DETECTOR_INPUT_BEFORE))  # recorded before stop 66:
-        known.setdefault("detector_int8", False)  # 320 x 240, float32
+        for k, v in DETECTOR_BEFORE.items():  # recorded before stop 66
+            known.setdefault(k, v.copy() if isinstance(v, list) else v)
         return cls(**known)
 
 
@@ -232,12 +233,19 @@ def _key(*parts) -> str:
     return hashlib.sha1(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:12]
 
 
+def detector_changes(recipe: Recipe) -> dict:
+    """The detector's recipe fields whose values differ from before stop 66 (:data:`DETECTOR_BEFORE`)."""
+    now = {"detector_input": list(recipe.detector_input), "detector_int8": recipe.detector_int8}
+    return {k: v for k, v in now.items() if v != DETECTOR_BEFORE[k]}
+
+
 def detector_key(recipe: Recipe, k_enc: str, k_render_det: str, minutes: float) -> str:
     """The detector stage's key: its input and int8 only where they differ from before stop 66
     (320 x 240, float32), so that a build begun before then resumes its detector stage."""
+    changed = detector_changes(recipe)
     return _key("detector", k_enc, k_render_det, minutes, recipe.detector_backbone, recipe.seed,
-                *([list(recipe.detector_input)] if list(recipe.detector_input) != DETECTOR_INPUT_BEFORE else []),
-                *(["int8"] if recipe.detector_int8 else []))
+                *([changed["detector_input"]] if "detector_input" in changed else []),
+                *(["int8"] if changed.get("detector_int8") else []))
 
 
 def build(recipe: Recipe, out_dir, log=print, cluster=None) -> dict:
@@ -399,7 +407,6 @@ def build(recipe: Recipe, out_dir, log=print, cluster=None) -> dict:
     stage(4, "encoder", k_enc, do_encoder)
 
     # 5. detector
-    det_input = list(recipe.detector_input)
     k_det = detector_key(recipe, k_enc, k_render_det, p["detector_minutes"])
 
     def do_detector():
@@ -412,7 +419,7 @@ def build(recipe: Recipe, out_dir, log=print, cluster=None) -> dict:
             data_dir=joined(), bundle_dir=out, minutes=p["detector_minutes"], seed=recipe.seed, occlusion=0.5,
             stage_minutes=p["detector_minutes"], batch=min(32, max(2, n // 2)),
             lr=DETECTOR_LR.get(recipe.detector_backbone, 2e-3), backbone=recipe.detector_backbone,
-            input_w=det_input[0], input_h=det_input[1],
+            input_w=recipe.detector_input[0], input_h=recipe.detector_input[1],
             device=recipe.device, command=f"app.py build --models {recipe.models} --out {out}"),
             p["detector_minutes"])
         v = (_written(open_bundle, out, "detector").manifest.detector or {})["training"]["validation_synthetic"]
@@ -450,10 +457,9 @@ def build(recipe: Recipe, out_dir, log=print, cluster=None) -> dict:
         return {"report": str(out / "report" / "report.md")}
     # (mesh_faces 0, max_images and names None, the detector's input and int8 as before stop 66:
     # the keys of builds made before they were recorded)
-    old = {"detector_input": DETECTOR_INPUT_BEFORE, "detector_int8": False}
     recorded = {k: v for k, v in asdict(recipe).items()
                 if (k != "mesh_faces" or v) and (k not in ("max_images", "names") or v is not None)
-                and not (k in old and v == old[k])}
+                and k not in DETECTOR_BEFORE} | detector_changes(recipe)
     stage(7, "report", _key("report", k_check, recorded), do_report)
     summary["minutes"] = round((time.perf_counter() - t_start) / 60, 1)
     summary["minutes_all_runs"] = round(sum(state.d[s].get("seconds", 0.0) for s in STAGES) / 60, 1)
