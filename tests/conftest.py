@@ -90,6 +90,18 @@ def tiny_bundle(tmp_path_factory, data_dir):
     return root / "lmo"
 
 
+@pytest.fixture(scope="session")
+def tiny_detector_bundle(tiny_bundle, tmp_path_factory):
+    """``tiny_bundle`` with a detector trained for 10 steps (code paths only)."""
+    import shutil
+
+    from tracker.training.detector_train import train_detector
+    root = tmp_path_factory.mktemp("det") / "lmo"
+    shutil.copytree(tiny_bundle, root)
+    train_detector(tiny_bundle.parent / "split", root, max_steps=10, width=8, batch=2, log=lambda *a: None)
+    return root
+
+
 FIXTURE_MESHES = Path(__file__).parent / "fixtures" / "models"
 
 

@@ -261,15 +261,6 @@ def test_pasting_objects_without_occlusion_is_refused(tiny_bundle):
         train_detector(tiny_bundle.parent / "split", tiny_bundle, max_steps=5, paste_objects=0.5)
 
 
-@pytest.fixture(scope="module")
-def tiny_detector_bundle(tiny_bundle, tmp_path_factory):
-    from tracker.training.detector_train import train_detector
-    root = tmp_path_factory.mktemp("det") / "lmo"
-    shutil.copytree(tiny_bundle, root)
-    train_detector(tiny_bundle.parent / "split", root, max_steps=10, width=8, batch=2, log=lambda *a: None)
-    return root
-
-
 def test_a_stage_budget_caps_the_detectors_training(tiny_bundle, tmp_path, monkeypatch):
     """build's detector stage: loading the images, validation and export come out of the same
     budget, so the training itself gets less than ``minutes``. Counted in steps: the detector's

@@ -13,13 +13,14 @@ from tests.conftest import REPO
 
 # gt: measured 2026-12-05 on the encoder and pose head of one `build` command (stop 56), on an AMD
 # EPYC Zen 3 (AVX2), and again 2026-12-06 on a Xeon (AVX-512 VNNI): the same figures. detector:
-# measured 2026-12-06 (Xeon) with the detector of commit 2ab33ed dequantised to float32 (stop 57);
-# float32, so one set of figures stands for every CPU (the int8 graph scored otherwise on CPUs
-# without 8-bit dot products).
+# measured 2026-12-07 (AMD EPYC, AVX-512 VNNI) with the fused detector of stop 67: commit 2ab33ed's
+# pair dequantised to float32 (stop 57) and stop 66's NanoDet, int8 with 7-bit weights, which
+# computes the same integers with or without 8-bit dot products; so one set of figures stands
+# for every CPU.
 EXPECTED = {
     "gt": {"n_gt": 386, "add_recall": 0.2487, "ar_mssd": 0.351, "ar_mspd": 0.6256},
-    "detector": {"n_gt": 386, "add_recall": 0.1269, "ar_mssd": 0.2189, "ar_mspd": 0.449,
-                 "ap": 0.3642, "ap50": 0.6342, "recall50": 0.7977},
+    "detector": {"n_gt": 386, "add_recall": 0.1606, "ar_mssd": 0.2347, "ar_mspd": 0.4609,
+                 "ap": 0.4171, "ap50": 0.6933, "recall50": 0.8154},
 }
 TOL = 0.003
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from tracker.cli.args import (add_join, add_regressor_budget, jpeg_quality, nonnegative_int, positive_float,
-                              positive_int)
+from tracker.cli.args import (add_join, add_regressor_budget, fraction, jpeg_quality, nonnegative_int,
+                              positive_float, positive_int)
 from tracker.cli.common import default_run_dir as _default_run_dir
 from tracker.cli.common import print_validation as _print_validation
 
@@ -51,6 +51,13 @@ def cmd_join_detectors(args) -> int:
     join_detectors(args.model, args.detectors_from, out_dir=args.out, int8_data=args.int8, mirror=args.mirror,
                    weight_bits=args.weight_bits, half=args.half_weights, command="app.py " + " ".join(sys.argv[1:]),
                    **extra)
+    return 0
+
+
+def cmd_fuse_detectors(args) -> int:
+    from tracker.training.detector_fusion import fuse_detectors
+    fuse_detectors(args.model, args.detectors_from, out_dir=args.out, score_thresh=args.score_thresh, iou=args.iou,
+                   floor=args.floor, command="app.py " + " ".join(sys.argv[1:]))
     return 0
 
 
@@ -210,6 +217,18 @@ def add_commands(sub, REPO) -> None:
     s.add_argument("--score-thresh", type=float, metavar="T",
                    help="run-time score threshold of the joined detector (default: the first member's)")
     s.set_defaults(func=cmd_join_detectors)
+
+    s = sub.add_parser("fuse-detectors", help="a detector that runs several bundles' detectors on every frame and "
+                                                "fuses their detections (networks of other inputs too)")
+    add_join(s, "bundle folder that gets the fused detector (its own is the first network)", "detectors_from",
+             "bundles whose detectors (the same objects and kind of box) join")
+    s.add_argument("--score-thresh", type=fraction, default=0.20, metavar="T",
+                   help="run-time threshold of a fused detection: the sum of the networks' scores over their "
+                        "number (default 0.20)")
+    s.add_argument("--iou", type=fraction, default=0.5, help="overlap at which detections join (default 0.5)")
+    s.add_argument("--floor", type=fraction, default=0.05,
+                   help="each network's lowest score that can join (default 0.05)")
+    s.set_defaults(func=cmd_fuse_detectors)
 
     s = sub.add_parser("requantise-detector", help="quantise a bundle's int8 detector again from its float32 graph "
                                                    "(by default with 7-bit weights)")

@@ -10,6 +10,7 @@ and the sub-cell offset (x, y) of the centre in cells.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, replace
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -178,27 +179,60 @@ def nms(boxes: np.ndarray, scores: np.ndarray, iou: float) -> list[int]:
     return keep
 
 
+class _Network:
+    """One detector graph with its spec: a frame in, its output maps and letterbox out."""
+
+    def __init__(self, bundle, spec: DetectorSpec, path, threads: int):
+        from tracker.runtime.estimator import make_session
+        self.spec = spec
+        self.session = make_session(path, threads)
+        out = self.session.get_outputs()[0].shape
+        if len(out) != 4 or out[1] != len(spec.classes) + 4:
+            raise UserError(f"{bundle.root}: {Path(path).name} has {out[1] if len(out) > 1 else '?'} output channels, "
+                            f"its manifest lists {len(spec.classes)} classes (+4 box channels)")
+        self.input_name = self.session.get_inputs()[0].name
+
+    def maps(self, image_rgb: np.ndarray) -> tuple[np.ndarray, Letterbox]:
+        img, lb = letterbox(image_rgb, self.spec.input_w, self.spec.input_h, self.spec.pad_value)
+        return self.session.run(None, {self.input_name: normalise(img[None], self.spec)})[0][0], lb
+
+
 class Detector:
-    """The bundle's detector. Refuses, at load time, a detector whose classes are not objects
-    of the bundle or whose output channels do not match its classes."""
+    """The bundle's detector: one network, or several whose detections are fused
+    (:mod:`tracker.runtime.fusion`, the manifest's ``detector.fusion``). Refuses, at load time, a
+    detector whose classes are not objects of the bundle or whose output channels do not match
+    its classes."""
 
     def __init__(self, bundle, threads: int = 1):
-        from tracker.runtime.estimator import make_session
         m = bundle.manifest
         if not m.has_detector:
             raise UserError(f"{bundle.root}: this bundle has no detector; train one with 'app.py train-detector'")
         self.spec = DetectorSpec.from_dict(m.detector)
+        self.fusion = None
+        specs = [(self.spec, bundle.path("detector"))]
+        if "fusion" in m.detector:
+            from tracker.runtime.fusion import Fusion
+            self.fusion = Fusion.from_dict(m.detector["fusion"], f"{bundle.root}/manifest.json")
+            for d in self.fusion.members:
+                spec = DetectorSpec.from_dict(d)
+                if sorted(spec.classes) != sorted(self.spec.classes) or spec.boxes != self.spec.boxes:
+                    raise UserError(f"{bundle.root}: the fused detector {spec.file} has other classes or boxes than "
+                                    f"the first ({spec.classes} {spec.boxes} against {self.spec.classes} "
+                                    f"{self.spec.boxes}); fuse detectors of the same objects")
+                specs.append((spec, bundle.root / spec.file))
         known = set(m.obj_ids)
         bad = [c for c in self.spec.classes if c not in known]
         if bad:
             raise UserError(f"{bundle.root}: the detector's classes {bad} are not objects of this bundle "
                             f"({sorted(known)}); retrain the detector for these objects")
-        self.session = make_session(bundle.path("detector"), threads)
-        out = self.session.get_outputs()[0].shape
-        if len(out) != 4 or out[1] != len(self.spec.classes) + 4:
-            raise UserError(f"{bundle.root}: detector.onnx has {out[1] if len(out) > 1 else '?'} output channels, "
-                            f"its manifest lists {len(self.spec.classes)} classes (+4 box channels)")
-        self.input_name = self.session.get_inputs()[0].name
+        # several networks run side by side, the threads shared out (onnxruntime lets go of the GIL)
+        each = max(1, threads // len(specs))
+        self.networks = [_Network(bundle, spec, path, each) for spec, path in specs]
+        self.session, self.input_name = self.networks[0].session, self.networks[0].input_name
+        self._pool = None
+        if len(self.networks) > 1 and threads > 1:
+            from concurrent.futures import ThreadPoolExecutor
+            self._pool = ThreadPoolExecutor(len(self.networks) - 1, thread_name_prefix="detector")
 
     def __call__(self, image_rgb: np.ndarray) -> list[Detection]:
         """The run-time detections: the manifest's threshold, at most ``max_per_class`` each."""
@@ -208,19 +242,53 @@ class Detector:
         """The run-time detections and (with ``candidates``) the ranked list that COCO's AP
         is defined on: every peak scoring at least ``CANDIDATE_SCORE``, up to
         ``CANDIDATE_PER_CLASS`` per object and ``CANDIDATE_MAX`` per image (pycocotools keeps
-        100 per image), from the same network pass."""
+        100 per image), from the same network pass. A fused detector's: the clusters."""
         h, w = image_rgb.shape[:2]
-        img, lb = letterbox(image_rgb, self.spec.input_w, self.spec.input_h, self.spec.pad_value)
-        maps = self.session.run(None, {self.input_name: normalise(img[None], self.spec)})[0][0]
+        if self.fusion is not None:
+            return self._fused(image_rgb, candidates)
+        maps, lb = self.networks[0].maps(image_rgb)
         if not np.all(np.isfinite(maps)):
             return [], []  # NaN output: no detections rather than garbage boxes
         dets = decode(maps, self.spec, lb, (w, h))
         if not candidates:
             return dets, []
-        wide = replace(self.spec, score_thresh=min(CANDIDATE_SCORE, self.spec.score_thresh),
-                       max_per_class=max(CANDIDATE_PER_CLASS, self.spec.max_per_class),
-                       max_dets=max(CANDIDATE_MAX, self.spec.max_dets))
-        return dets, decode(maps, wide, lb, (w, h))
+        return dets, decode(maps, self._wide(self.spec, CANDIDATE_SCORE), lb, (w, h))
+
+    @staticmethod
+    def _wide(spec: DetectorSpec, floor: float) -> DetectorSpec:
+        """``spec`` decoding every peak from ``floor``, the candidates' counts (not the run time's)."""
+        return replace(spec, score_thresh=min(floor, spec.score_thresh), max_per_class=max(CANDIDATE_PER_CLASS,
+                       spec.max_per_class), max_dets=max(CANDIDATE_MAX, spec.max_dets), candidates=1)
+
+    def _fused(self, image_rgb: np.ndarray, candidates: bool) -> tuple[list[Detection], list[Detection]]:
+        from tracker.runtime.fusion import fuse, per_object
+        h, w = image_rgb.shape[:2]
+        f = self.fusion
+        if self._pool is not None:
+            rest = [self._pool.submit(net.maps, image_rgb) for net in self.networks[1:]]
+            outs = [self.networks[0].maps(image_rgb)] + [r.result() for r in rest]
+        else:
+            outs = [net.maps(image_rgb) for net in self.networks]
+        per_network = []
+        for net, (maps, lb) in zip(self.networks, outs):
+            if not np.all(np.isfinite(maps)):
+                return [], []
+            wide = replace(self._wide(net.spec, f.floor), score_thresh=f.floor)
+            per_network.append(decode(maps, wide, lb, (w, h)))
+        clusters = fuse(per_network, f.iou)
+        verify = self.spec.max_per_class == 1 and self.spec.candidates > 1
+        groups = [g for g in per_object(clusters, self.spec.candidates if verify else self.spec.max_per_class).values()
+                  if g[0].score >= f.score_thresh][:self.spec.max_dets]
+        if verify:  # the best cluster and the next ones of its object, posed and the most confident kept
+            dets = [replace(d, group=d.obj_id) for g in groups for d in g]
+        else:
+            dets = [d for g in groups for d in g if d.score >= f.score_thresh]
+        dets.sort(key=lambda d: -d.score)
+        if not candidates:
+            return dets, []
+        ranked = [d for g in per_object(clusters, CANDIDATE_PER_CLASS).values() for d in g]
+        ranked.sort(key=lambda d: -d.score)
+        return dets, ranked[:CANDIDATE_MAX]
 
 
 def bundle_with_detector(path):
@@ -238,6 +306,8 @@ def float_detector(path, use: str):
     ``use``: what to do instead, said when it is joined or quantised."""
     b = bundle_with_detector(path)
     d = b.manifest.detector
+    if "fusion" in d:
+        raise UserError(f"{path}: its detector fuses several networks; {use}")
     if "ensemble" in d or "int8" in d:
         raise UserError(f"{path}: its detector is joined or quantised already; {use}")
     return b, DetectorSpec.from_dict(d), d, b.path("detector")

@@ -1,0 +1,90 @@
+"""Several detectors' detections fused into one list: weighted box fusion with one instance of
+each object (LM-O's case; ``lab fuse-detectors`` makes such a bundle, stop 67).
+
+Each network's candidates of an object (its peaks scoring at least the floor, after its own
+class-wise NMS) go into clusters, best score first: a candidate joins the first cluster whose
+first box it overlaps by IoU >= ``iou`` and that has no candidate of its network yet, else it
+starts a cluster. A cluster scores the sum of its members' scores over the number of networks
+(a network that misses counts 0: what one network alone sees scores less) and its box is the
+score-weighted mean of its members' boxes. Networks that err differently on an object (a box
+elsewhere, a box of part of it) outvote each other; their boxes of one object average.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from tracker.core.errors import UserError
+from tracker.core.geometry import iou_matrix
+from tracker.runtime.estimator import Detection
+
+
+@dataclass
+class Fusion:
+    """A manifest's ``detector.fusion``: the other networks (each a ``DetectorSpec`` dict with its
+    ``file``) and how their detections join the first network's."""
+    members: list[dict]
+    iou: float = 0.5            # a candidate joins a cluster whose first box it overlaps this much
+    floor: float = 0.05         # each network's candidates score at least this
+    score_thresh: float = 0.20  # a fused detection is kept at run time from this score
+
+    @classmethod
+    def from_dict(cls, d, where) -> "Fusion":
+        if not isinstance(d, dict) or not isinstance(d.get("members"), list) or not d["members"] \
+                or not all(isinstance(m, dict) and isinstance(m.get("file"), str) and isinstance(m.get("classes"), list)
+                           for m in d["members"]):
+            raise UserError(f"{where}: malformed detector fusion entry (needs 'members', each with 'file' and "
+                            f"'classes'); rebuild it with 'app.py lab fuse-detectors'")
+        out = cls(members=list(d["members"]))
+        for key in ("iou", "floor", "score_thresh"):
+            if key in d:
+                v = d[key]
+                if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < 1:
+                    raise UserError(f"{where}: detector fusion '{key}' must lie between 0 and 1, not {v!r}")
+                setattr(out, key, float(v))
+        return out
+
+    def to_dict(self) -> dict:
+        return {"members": self.members, "iou": self.iou, "floor": self.floor, "score_thresh": self.score_thresh,
+                "method": "weighted box fusion, one instance per object (tracker/runtime/fusion.py)"}
+
+
+def fuse(per_network: list[list[Detection]], iou: float = 0.5) -> list[Detection]:
+    """Every cluster of every object (see the module), best score first. ``per_network``: each
+    network's candidates (already above its floor)."""
+    n = len(per_network)
+    by_obj: dict[int, list[tuple[int, Detection]]] = {}
+    for k, dets in enumerate(per_network):
+        for d in dets:
+            by_obj.setdefault(int(d.obj_id), []).append((k, d))
+    out: list[Detection] = []
+    for obj, cands in by_obj.items():
+        cands = sorted(cands, key=lambda c: -c[1].score)  # stable: ties keep the networks' order
+        boxes = np.array([d.box for _, d in cands], float)
+        ious = iou_matrix(boxes, boxes)
+        clusters: list[tuple[int, set, list[int]]] = []  # (first candidate, its networks, its candidates)
+        for i, (k, _) in enumerate(cands):
+            for first, who, members in clusters:
+                if k not in who and ious[first, i] >= iou:
+                    who.add(k)
+                    members.append(i)
+                    break
+            else:
+                clusters.append((i, {k}, [i]))
+        for _, _, members in clusters:
+            s = np.array([cands[i][1].score for i in members], float)
+            w = s / s.sum() if s.sum() > 0 else np.full(len(s), 1 / len(s))
+            out.append(Detection(obj, (w[:, None] * boxes[members]).sum(0), float(s.sum() / n)))
+    out.sort(key=lambda d: -d.score)
+    return out
+
+
+def per_object(clusters: list[Detection], k: int) -> dict[int, list[Detection]]:
+    """The best ``k`` clusters of each object (``clusters`` best first)."""
+    res: dict[int, list[Detection]] = {}
+    for d in clusters:
+        got = res.setdefault(d.obj_id, [])
+        if len(got) < k:
+            got.append(d)
+    return res
