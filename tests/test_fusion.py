@@ -58,7 +58,7 @@ def test_a_bundle_fused_with_a_copy_of_itself_finds_what_its_network_finds(fused
     from dataclasses import replace
 
     from tracker.core.bundle import open_bundle
-    from tracker.runtime.detector import Detector, decode, letterbox
+    from tracker.runtime.detector import Detector, decode
     out, _ = fused
     b = open_bundle(out)  # every hash verified, detector_2.onnx included
     assert b.manifest.artefacts["detector_2"] == "detector_2.onnx"
