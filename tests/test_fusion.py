@@ -132,3 +132,24 @@ def test_a_fused_bundle_with_a_bad_entry_or_file_is_refused_in_one_line(fused, t
         f.write(b"\0")
     with pytest.raises(UserError, match="detector_2.onnx"):
         open_bundle(out)
+
+
+def test_retraining_keeps_or_replaces_the_fused_detector_whole(fused, tiny_bundle):
+    """A new encoder on a fused bundle keeps every network of its detector; a new detector
+    replaces all of them (no network left behind that nothing runs)."""
+    from tracker.core.bundle import open_bundle
+    from tracker.runtime.detector import Detector
+    from tracker.training.detector_train import train_detector
+    from tracker.training.train import train_bundle
+    from tests.conftest import REPO
+    out, _ = fused
+    split = tiny_bundle.parent / "split"
+    train_bundle(split, out, method="cvam", size=32, latent=16, max_steps=2, reg_epochs=1,
+                 models_info_path=REPO / "models" / "lmo_models_info.json", log=lambda *a: None)
+    b = open_bundle(out)
+    assert "fusion" in b.manifest.detector and b.manifest.artefacts["detector_2"] == "detector_2.onnx"
+    assert len(Detector(b).networks) == 2
+    train_detector(split, out, max_steps=2, width=4, batch=2, log=lambda *a: None)
+    b = open_bundle(out)
+    assert "fusion" not in b.manifest.detector and "detector_2" not in b.manifest.artefacts
+    assert not (out / "detector_2.onnx").exists() and len(Detector(b).networks) == 1

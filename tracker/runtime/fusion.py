@@ -50,6 +50,13 @@ class Fusion:
                 "method": "weighted box fusion, one instance per object (tracker/runtime/fusion.py)"}
 
 
+def member_files(entry: dict) -> list[str]:
+    """The files of a manifest ``detector`` entry's fused networks (none for one network): each
+    also an artefact role, its name without ``.onnx``."""
+    f = entry.get("fusion") if isinstance(entry, dict) else None
+    return [m["file"] for m in f.get("members", []) if isinstance(m, dict) and "file" in m] if isinstance(f, dict) else []
+
+
 def fuse(per_network: list[list[Detection]], iou: float = 0.5) -> list[Detection]:
     """Every cluster of every object (see the module), best score first. ``per_network``: each
     network's candidates (already above its floor)."""

@@ -462,9 +462,11 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
     if (out / "manifest.json").is_file():
         old = json.loads((out / "manifest.json").read_text())
         det = old.get("detector")
-        if det and sorted(det.get("classes", [])) == obj_ids and (out / det["file"]).is_file():
-            kept_detector = (det, (out / det["file"]).read_bytes())
-            log(f"keeping the bundle's detector ({det['file']})")
+        from tracker.runtime.fusion import member_files
+        files = [det["file"], *member_files(det)] if det else []
+        if det and sorted(det.get("classes", [])) == obj_ids and all((out / f).is_file() for f in files):
+            kept_detector = (det, {f: (out / f).read_bytes() for f in files})  # a fused detector's networks too
+            log(f"keeping the bundle's detector ({', '.join(files)})")
 
     def _write_bundle(dest: Path, name: str) -> Manifest:  # the files; the manifest to hash
         (dest / "meshes").mkdir(parents=True, exist_ok=True)
@@ -525,10 +527,12 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
             created=time.strftime("%Y-%m-%d %H:%M:%S"),
         )
         if kept_detector is not None:
-            det, blob = kept_detector
-            (dest / det["file"]).write_bytes(blob)
+            det, blobs = kept_detector
+            for f, blob in blobs.items():
+                (dest / f).write_bytes(blob)
             manifest.detector = det
             manifest.artefacts["detector"] = det["file"]
+            manifest.artefacts.update({Path(f).stem: f for f in member_files(det)})
         return manifest
 
     from tracker.training.decimate import add_overlay_meshes
