@@ -280,7 +280,8 @@ class Detector:
         groups = [g for g in per_object(clusters, self.spec.candidates if verify else self.spec.max_per_class).values()
                   if g[0].score >= f.score_thresh][:self.spec.max_dets]
         if verify:  # the best cluster and the next ones of its object, posed and the most confident kept
-            dets = [replace(d, group=d.obj_id) for g in groups for d in g]
+            dets = [replace(d, group=d.obj_id) for g in groups
+                    for i, d in enumerate(g) if i == 0 or d.score >= self.spec.candidate_floor]
         else:
             dets = [d for g in groups for d in g if d.score >= f.score_thresh]
         dets.sort(key=lambda d: -d.score)
