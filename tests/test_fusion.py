@@ -124,6 +124,11 @@ def test_a_fused_bundle_with_a_bad_entry_or_file_is_refused_in_one_line(fused, t
     (bad / "manifest.json").write_text(json.dumps(m))
     with pytest.raises(UserError, match="fusion 'score_thresh' must lie between 0 and 1"):
         Detector(open_bundle(bad))
+    m["detector"]["fusion"]["score_thresh"] = 0.2
+    m["detector"]["fusion"]["members"][0]["file"] = "../other/detector.onnx"  # outside the hashed files
+    (bad / "manifest.json").write_text(json.dumps(m))
+    with pytest.raises(UserError, match="is not one of the bundle's artefacts"):
+        Detector(open_bundle(bad))
     del m["detector"]["fusion"]["members"]
     (bad / "manifest.json").write_text(json.dumps(m))
     with pytest.raises(UserError, match="malformed detector fusion entry"):

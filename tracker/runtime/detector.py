@@ -219,7 +219,11 @@ class Detector:
                     raise UserError(f"{bundle.root}: the fused detector {spec.file} has other classes or boxes than "
                                     f"the first ({spec.classes} {spec.boxes} against {self.spec.classes} "
                                     f"{self.spec.boxes}); fuse detectors of the same objects")
-                specs.append((spec, bundle.root / spec.file))
+                role = Path(spec.file).stem
+                if m.artefacts.get(role) != spec.file:
+                    raise UserError(f"{bundle.root}: the fused detector's file {spec.file!r} is not one of the "
+                                    f"bundle's artefacts; rebuild it with 'app.py lab fuse-detectors'")
+                specs.append((spec, bundle.path(role)))  # hashed in the manifest, or refused
         known = set(m.obj_ids)
         bad = [c for c in self.spec.classes if c not in known]
         if bad:
