@@ -19,6 +19,7 @@ COMMIT = "2ab33ed"
 
 def main(bundle: str) -> None:
     from tracker.core.bundle import update_manifest
+    from tracker.runtime.fusion import drop_members
     from tracker.training.detector_ensemble import dequantise_graph
 
     def show(path: str) -> bytes:
@@ -31,6 +32,7 @@ def main(bundle: str) -> None:
         counts = dequantise_graph(int8, flt)
 
         def change(m, stage):
+            drop_members(m, Path(stage))  # a fused detector's other networks (stop 67) go too
             shutil.copy(flt, Path(stage) / "detector.onnx")
             det = {k: v for k, v in old.items() if k != "int8"}
             det["float32_from_int8"] = {"method": "tracker.training.detector_ensemble.dequantise_graph", **counts,

@@ -110,6 +110,10 @@ def test_fusing_refuses_what_it_cannot_fuse(fused, tiny_detector_bundle, tmp_pat
     (other / "manifest.json").write_text(json.dumps(m))
     with pytest.raises(UserError, match="other objects or boxes"):
         fuse_detectors(tiny_detector_bundle, [other], out_dir=tmp_path / "x", **quiet)
+    m["detector"]["boxes"], m["detector"]["max_per_class"] = "visible", 3
+    (other / "manifest.json").write_text(json.dumps(m))
+    with pytest.raises(UserError, match="one instance per object"):
+        fuse_detectors(other, [tiny_detector_bundle], out_dir=tmp_path / "x", **quiet)
     assert not (tmp_path / "x").exists()
 
 
@@ -127,7 +131,11 @@ def test_a_fused_bundle_with_a_bad_entry_or_file_is_refused_in_one_line(fused, t
     m["detector"]["fusion"]["score_thresh"] = 0.2
     m["detector"]["fusion"]["members"][0]["file"] = "../other/detector.onnx"  # outside the hashed files
     (bad / "manifest.json").write_text(json.dumps(m))
-    with pytest.raises(UserError, match="is not one of the bundle's artefacts"):
+    with pytest.raises(UserError, match="is not one of the bundle's fused-network artefacts"):
+        Detector(open_bundle(bad))
+    m["detector"]["fusion"]["members"][0]["file"] = "detector.onnx"  # the first network twice
+    (bad / "manifest.json").write_text(json.dumps(m))
+    with pytest.raises(UserError, match="is not one of the bundle's fused-network artefacts"):
         Detector(open_bundle(bad))
     del m["detector"]["fusion"]["members"]
     (bad / "manifest.json").write_text(json.dumps(m))
@@ -158,3 +166,45 @@ def test_retraining_keeps_or_replaces_the_fused_detector_whole(fused, tiny_bundl
     b = open_bundle(out)
     assert "fusion" not in b.manifest.detector and "detector_2" not in b.manifest.artefacts
     assert not (out / "detector_2.onnx").exists() and len(Detector(b).networks) == 1
+
+
+def test_networks_of_other_inputs_fuse_as_their_own_decodings_say(tiny_detector_bundle, tiny_bundle, lmo_dev,
+                                                                  tmp_path):
+    """A 320 x 240 and a 160 x 120 network: each letterboxes the frame to its own input and
+    decodes its own maps; the fused run-time detections and AP candidates are fuse() of those,
+    and verified candidates group an object's next clusters."""
+    from dataclasses import replace
+
+    from tracker.core.bundle import open_bundle
+    from tracker.runtime.detector import CANDIDATE_SCORE, Detector, decode
+    from tracker.training.detector_fusion import fuse_detectors
+    from tracker.training.detector_train import train_detector
+    small = tmp_path / "small"
+    shutil.copytree(tiny_bundle, small)
+    train_detector(tiny_bundle.parent / "split", small, max_steps=3, width=4, batch=2, input_w=160, input_h=120,
+                   log=lambda *a: None)
+    out = tmp_path / "fused"
+    fuse_detectors(tiny_detector_bundle, [small], out_dir=out, score_thresh=0.02, floor=0.02, log=lambda *a: None)
+    det = Detector(open_bundle(out), threads=2)
+    assert [(n.spec.input_w, n.spec.input_h) for n in det.networks] == [(320, 240), (160, 120)]
+    frame = lmo_dev.read_rgb(lmo_dev.im_ids[0])
+    outs = [n.maps(frame) for n in det.networks]
+    assert [o[0].shape[1:] for o in outs] == [(30, 40), (15, 20)]
+
+    def by_hand(floor):
+        return fuse([decode(m, replace(Detector._wide(n.spec, floor), score_thresh=floor), lb, (640, 480))
+                     for n, (m, lb) in zip(det.networks, outs)])
+    dets, cands = det.detect(frame, candidates=True)
+    want = {}
+    for d in by_hand(0.02):
+        want.setdefault(d.obj_id, d)
+    assert sorted((d.obj_id, round(d.score, 6)) for d in dets) == \
+        sorted((o, round(d.score, 6)) for o, d in want.items() if d.score >= 0.02)
+    ranked = by_hand(CANDIDATE_SCORE)  # AP's list: at most 10 clusters of an object, 100 in all
+    per = [sum(d.obj_id == o for d in ranked) for o in det.spec.classes]
+    assert len(cands) == min(100, sum(min(10, k) for k in per)) >= len(dets) and max(per) > 10
+    det.spec = replace(det.spec, candidates=3, candidate_floor=0.02)
+    grouped = det(frame)
+    assert all(d.group == d.obj_id for d in grouped)
+    assert max(sum(d.obj_id == o for d in grouped) for o in det.spec.classes) <= 3
+    assert {d.obj_id for d in grouped} == {d.obj_id for d in dets}

@@ -213,16 +213,15 @@ class Detector:
         if "fusion" in m.detector:
             from tracker.runtime.fusion import Fusion
             self.fusion = Fusion.from_dict(m.detector["fusion"], f"{bundle.root}/manifest.json")
+            from tracker.runtime.fusion import member_problem, role_of
             for d in self.fusion.members:
                 spec = DetectorSpec.from_dict(d)
-                if sorted(spec.classes) != sorted(self.spec.classes) or spec.boxes != self.spec.boxes:
-                    raise UserError(f"{bundle.root}: the fused detector {spec.file} has other classes or boxes than "
-                                    f"the first ({spec.classes} {spec.boxes} against {self.spec.classes} "
-                                    f"{self.spec.boxes}); fuse detectors of the same objects")
-                role = Path(spec.file).stem
-                if m.artefacts.get(role) != spec.file:
-                    raise UserError(f"{bundle.root}: the fused detector's file {spec.file!r} is not one of the "
-                                    f"bundle's artefacts; rebuild it with 'app.py lab fuse-detectors'")
+                if problem := member_problem(self.spec, spec):
+                    raise UserError(f"{bundle.root}: the fused network {spec.file}: {problem}")
+                role = role_of(spec.file)
+                if role is None or m.artefacts.get(role) != spec.file:
+                    raise UserError(f"{bundle.root}: the fused network's file {spec.file!r} is not one of the "
+                                    f"bundle's fused-network artefacts; rebuild it with 'app.py lab fuse-detectors'")
                 specs.append((spec, bundle.path(role)))  # hashed in the manifest, or refused
         known = set(m.obj_ids)
         bad = [c for c in self.spec.classes if c not in known]
@@ -273,25 +272,25 @@ class Detector:
             outs = [self.networks[0].maps(image_rgb)] + [r.result() for r in rest]
         else:
             outs = [net.maps(image_rgb) for net in self.networks]
-        per_network = []
-        for net, (maps, lb) in zip(self.networks, outs):
-            if not np.all(np.isfinite(maps)):
-                return [], []
-            wide = replace(self._wide(net.spec, f.floor), score_thresh=f.floor)
-            per_network.append(decode(maps, wide, lb, (w, h)))
-        clusters = fuse(per_network, f.iou)
-        verify = self.spec.max_per_class == 1 and self.spec.candidates > 1
-        groups = [g for g in per_object(clusters, self.spec.candidates if verify else self.spec.max_per_class).values()
-                  if g[0].score >= f.score_thresh][:self.spec.max_dets]
+        if not all(np.all(np.isfinite(maps)) for maps, _ in outs):
+            return [], []  # a network gave NaN: no detections rather than garbage boxes
+
+        def clusters(floor: float) -> list[Detection]:
+            return fuse([decode(maps, replace(self._wide(net.spec, floor), score_thresh=floor), lb, (w, h))
+                         for net, (maps, lb) in zip(self.networks, outs)], f.iou)
+        verify = self.spec.candidates > 1  # one instance per object (member_problem)
+        best = per_object(clusters(f.floor), self.spec.candidates if verify else 1)
+        groups = [g for g in best.values() if g[0].score >= f.score_thresh][:self.spec.max_dets]
         if verify:  # the best cluster and the next ones of its object, posed and the most confident kept
             dets = [replace(d, group=d.obj_id) for g in groups
                     for i, d in enumerate(g) if i == 0 or d.score >= self.spec.candidate_floor]
         else:
-            dets = [d for g in groups for d in g if d.score >= f.score_thresh]
+            dets = [g[0] for g in groups]
         dets.sort(key=lambda d: -d.score)
         if not candidates:
             return dets, []
-        ranked = [d for g in per_object(clusters, CANDIDATE_PER_CLASS).values() for d in g]
+        # AP's ranked list as for one network: every network's peaks from CANDIDATE_SCORE, fused
+        ranked = [d for g in per_object(clusters(CANDIDATE_SCORE), CANDIDATE_PER_CLASS).values() for d in g]
         ranked.sort(key=lambda d: -d.score)
         return dets, ranked[:CANDIDATE_MAX]
 

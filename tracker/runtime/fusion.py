@@ -11,6 +11,7 @@ elsewhere, a box of part of it) outvote each other; their boxes of one object av
 """
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -28,6 +29,7 @@ class Fusion:
     iou: float = 0.5            # a candidate joins a cluster whose first box it overlaps this much
     floor: float = 0.05         # each network's candidates score at least this
     score_thresh: float = 0.20  # a fused detection is kept at run time from this score
+    # (the first network's candidate_floor, for verified candidates, then applies to fused scores)
 
     @classmethod
     def from_dict(cls, d, where) -> "Fusion":
@@ -50,11 +52,48 @@ class Fusion:
                 "method": "weighted box fusion, one instance per object (tracker/runtime/fusion.py)"}
 
 
-def member_files(entry: dict) -> list[str]:
-    """The files of a manifest ``detector`` entry's fused networks (none for one network): each
-    also an artefact role, its name without ``.onnx``."""
+def member_file(k: int) -> str:
+    """The file of a fused detector's ``k``-th other network (k >= 1): ``detector_{k+1}.onnx``,
+    its artefact role the name without ``.onnx`` (:func:`role_of`)."""
+    return f"detector_{k + 1}.onnx"
+
+
+def role_of(file: str) -> str | None:
+    """The artefact role of a fused network's file (``detector_2.onnx`` -> ``detector_2``), None
+    for a name :func:`member_file` does not make."""
+    m = re.fullmatch(r"(detector_[2-9]|detector_[1-9][0-9]+)\.onnx", file)
+    return m.group(1) if m else None
+
+
+def member_files(entry) -> list[str]:
+    """The files of a manifest ``detector`` entry's fused networks (none for one network, or for
+    an entry too malformed to name them: loading it is refused with the reason)."""
     f = entry.get("fusion") if isinstance(entry, dict) else None
-    return [m["file"] for m in f.get("members", []) if isinstance(m, dict) and "file" in m] if isinstance(f, dict) else []
+    ms = f.get("members") if isinstance(f, dict) else None
+    return [m["file"] for m in ms if isinstance(m, dict) and isinstance(m.get("file"), str)] \
+        if isinstance(ms, list) else []
+
+
+def drop_members(manifest, folder) -> None:
+    """Remove a fused detector's other networks from a bundle being rewritten (``folder``, its
+    staged copy): their files and artefact roles; the caller then sets the new detector entry."""
+    for f in member_files(manifest.detector or {}):
+        role = role_of(f)
+        if role is not None and manifest.artefacts.get(role) == f:
+            (folder / f).unlink(missing_ok=True)
+            manifest.artefacts.pop(role)
+
+
+def member_problem(first, other) -> str | None:
+    """Why ``other`` (a ``DetectorSpec``) cannot fuse with ``first`` (None: it can): the same
+    objects and kind of box; the first network gives one instance per object."""
+    if first.max_per_class != 1:
+        return (f"fusion keeps one instance per object, but the first network keeps {first.max_per_class} "
+                f"(max_per_class)")
+    if sorted(other.classes) != sorted(first.classes) or other.boxes != first.boxes:
+        return (f"it finds other objects or boxes ({sorted(other.classes)}, {other.boxes}) than the first network "
+                f"({sorted(first.classes)}, {first.boxes}); fuse detectors of the same objects")
+    return None
 
 
 def fuse(per_network: list[list[Detection]], iou: float = 0.5) -> list[Detection]:

@@ -13,12 +13,7 @@ from tracker.core.bundle import bundle_writer, sha256
 from tracker.core.errors import UserError
 from tracker.core.manifest import Manifest
 from tracker.runtime.detector import DetectorSpec, bundle_with_detector
-from tracker.runtime.fusion import Fusion
-
-
-def member_file(k: int) -> str:
-    """The file (and artefact role, without ``.onnx``) of the ``k``-th fused network (k >= 1)."""
-    return f"detector_{k + 1}.onnx"
+from tracker.runtime.fusion import Fusion, member_file, member_problem, role_of
 
 
 def fuse_detectors(model_dir, others, out_dir=None, score_thresh: float = Fusion.score_thresh,
@@ -30,7 +25,7 @@ def fuse_detectors(model_dir, others, out_dir=None, score_thresh: float = Fusion
     joins a cluster, ``floor`` each network's lowest candidate score."""
     others = list(others or [])
     if not others:
-        raise UserError("nothing to fuse: name the bundles whose detectors join with --with")
+        raise UserError("nothing to fuse: name the bundles whose detectors join with --from")
     for name, v in (("--score-thresh", score_thresh), ("--iou", iou), ("--floor", floor)):
         if not 0 < v < 1:
             raise UserError(f"{name} must lie between 0 and 1, not {v}")
@@ -45,11 +40,8 @@ def fuse_detectors(model_dir, others, out_dir=None, score_thresh: float = Fusion
         d = b.manifest.detector
         if "fusion" in d:
             raise UserError(f"{o}: its detector fuses several networks already; name the bundles it was fused from")
-        spec = DetectorSpec.from_dict(d)
-        if sorted(spec.classes) != sorted(spec0.classes) or spec.boxes != spec0.boxes:
-            raise UserError(f"{o}: its detector finds other objects or boxes ({sorted(spec.classes)}, {spec.boxes}) "
-                            f"than {model_dir}'s ({sorted(spec0.classes)}, {spec0.boxes}); fuse detectors of the "
-                            f"same objects")
+        if problem := member_problem(spec0, DetectorSpec.from_dict(d)):
+            raise UserError(f"{o}: its detector cannot fuse with {model_dir}'s: {problem}")
         members.append((b, {**d, "file": member_file(k), "from": {"bundle": str(o), "detector_sha256":
                                                                   sha256(b.path("detector"))}}))
     fusion = Fusion(members=[m for _, m in members], iou=float(iou), floor=float(floor),
@@ -61,7 +53,7 @@ def fuse_detectors(model_dir, others, out_dir=None, score_thresh: float = Fusion
         w.manifest.detector = {**d0, "fusion": fusion}
         for b, m in members:
             (w.folder / m["file"]).write_bytes(b.path("detector").read_bytes())
-            w.manifest.artefacts[Path(m["file"]).stem] = m["file"]
+            w.manifest.artefacts[role_of(m["file"])] = m["file"]
     log(f"bundle {out}: its detector fuses {1 + len(members)} networks (run-time threshold {score_thresh}, "
         f"clusters at IoU {iou}, candidates from {floor})")
     return w.manifest

@@ -733,10 +733,8 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
                      **({"init_from": state["init_from"]} if "init_from" in state else {})}
 
     def change(manifest, folder):  # the bundle as it was is verified; now replace its detector
-        from tracker.runtime.fusion import member_files
-        for f in member_files(manifest.detector or {}):  # a fused detector's other networks go with it
-            (folder / f).unlink(missing_ok=True)
-            manifest.artefacts.pop(Path(f).stem, None)
+        from tracker.runtime.fusion import drop_members
+        drop_members(manifest, folder)  # a fused detector's other networks go with it
         shutil.move(staged, folder / spec.file)
         manifest.artefacts["detector"] = spec.file
         manifest.detector = d
