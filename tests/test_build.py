@@ -161,6 +161,15 @@ def test_build_makes_a_bundle_resumes_and_records_its_recipe(small, tmp_path, mo
     update_manifest(out, other_heads)
     bb.recipe_from_manifest(out, log=notes.append)
     assert len(notes) == 1 and "'s pose_head came from another run than its build" in notes[0], notes
+    # a detector fused with another run's (lab fuse-detectors) is said too; the rebuild below
+    # trains its own detector in its place, and the fused network goes with the old one
+    from tracker.training.detector_fusion import fuse_detectors
+    shutil.copytree(out, tmp_path / "twin")
+    fuse_detectors(out, [tmp_path / "twin"], log=lambda *a: None)
+    notes.clear()
+    bb.recipe_from_manifest(out, log=notes.append)
+    assert "'s detector_2, pose_head came from another run" in notes[0], notes
+    assert "fused with 1 more network(s)" in notes[0], notes
     # another seed renders new splits into the same folders: what was cut from the old ones and
     # the old detector's checkpoint are removed (gigabytes at full size), never loaded or resumed
     work = tmp_path / "models" / "mine.work"
@@ -172,6 +181,9 @@ def test_build_makes_a_bundle_resumes_and_records_its_recipe(small, tmp_path, mo
     assert all(n in removed for n in old), (old, removed)
     assert not any(m.startswith(("loaded", "resumed from")) for m in logs), logs
     assert len(list(work.glob("det_images_*.npz"))) == len(list(work.glob("detector_ckpt_*.pt"))) == 1
+    rebuilt = open_bundle(out).manifest
+    assert "fusion" not in rebuilt.detector and "detector_2" not in rebuilt.artefacts
+    assert not (out / "detector_2.onnx").exists()
 
 
 def test_build_refuses_bad_input_in_one_line(small, tmp_path):

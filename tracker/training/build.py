@@ -534,9 +534,12 @@ def recipe_from_manifest(bundle_dir, log=None) -> Recipe:
         rec["names"] = {str(o.id): o.name for o in b.manifest.objects}
     det = b.manifest.detector or {}
     changed = changed_since_build(b.manifest)
-    if log is not None and (det.get("provenance") or changed):
+    fused = len(det["fusion"].get("members") or []) if isinstance(det.get("fusion"), dict) else 0
+    if log is not None and (det.get("provenance") or changed or fused):
         p = det.get("provenance") or {}
         why = f" ({p.get('note', p)})" if p else ""
+        if fused:  # lab fuse-detectors: networks of other runs beside it
+            why += f", fused with {fused} more network(s) of other runs (lab fuse-detectors)"
         parts = ", ".join(changed) if changed else "detector"
         log(f"build: note: {bundle_dir}'s {parts} came from another run than its build{why}; this recipe "
             f"makes its own, so those of the rebuilt bundle differ")
