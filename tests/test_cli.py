@@ -44,7 +44,7 @@ def test_the_console_script_is_the_same_command_line(tmp_path):
 def test_join_detectors_bad_input_is_a_one_line_error(tmp_path):
     p = run("lab", "join-detectors", "--model", REPO / "models" / "lmo", "--from", tmp_path, "--out", tmp_path / "j")
     assert_one_line_error(p)
-    assert "joined or quantised already" in p.stderr  # the shipped detector is a joined one (stop 57)
+    assert "fuses several networks" in p.stderr  # the shipped detector fuses two (stop 67)
     assert not (tmp_path / "j").exists()
 
 
