@@ -39,6 +39,16 @@ def test_nothing_to_fuse_gives_nothing():
     assert fuse([[], []]) == []
 
 
+def test_only_the_names_fusion_makes_are_member_files():
+    from tracker.runtime.fusion import member_file, member_files, role_of
+    assert [member_file(k) for k in (1, 2, 9)] == ["detector_2.onnx", "detector_3.onnx", "detector_10.onnx"]
+    assert [role_of(member_file(k)) for k in (1, 9)] == ["detector_2", "detector_10"]
+    entry = {"fusion": {"members": [{"file": "detector_2.onnx"}, {"file": "../x/detector_3.onnx"},
+                                    {"file": "detector.onnx"}, {"file": "detector_01.onnx"}, {"file": 3}, 7]}}
+    assert member_files(entry) == ["detector_2.onnx"]
+    assert member_files({"fusion": {"members": 5}}) == member_files({"fusion": 1}) == member_files(None) == []
+
+
 @pytest.fixture()
 def fused(tiny_detector_bundle, tmp_path):
     from tracker.training.detector_fusion import fuse_detectors

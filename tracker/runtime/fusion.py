@@ -66,22 +66,22 @@ def role_of(file: str) -> str | None:
 
 
 def member_files(entry) -> list[str]:
-    """The files of a manifest ``detector`` entry's fused networks (none for one network, or for
-    an entry too malformed to name them: loading it is refused with the reason)."""
+    """The files of a manifest ``detector`` entry's fused networks, each a name :func:`member_file`
+    makes (none for one network, and none that an entry too malformed names: loading it is
+    refused with the reason; a hand-edited name never reaches a path outside the bundle)."""
     f = entry.get("fusion") if isinstance(entry, dict) else None
     ms = f.get("members") if isinstance(f, dict) else None
-    return [m["file"] for m in ms if isinstance(m, dict) and isinstance(m.get("file"), str)] \
-        if isinstance(ms, list) else []
+    return [m["file"] for m in ms if isinstance(m, dict) and isinstance(m.get("file"), str)
+            and role_of(m["file"]) is not None] if isinstance(ms, list) else []
 
 
 def drop_members(manifest, folder) -> None:
     """Remove a fused detector's other networks from a bundle being rewritten (``folder``, its
     staged copy): their files and artefact roles; the caller then sets the new detector entry."""
     for f in member_files(manifest.detector or {}):
-        role = role_of(f)
-        if role is not None and manifest.artefacts.get(role) == f:
+        if manifest.artefacts.get(role_of(f)) == f:
             (folder / f).unlink(missing_ok=True)
-            manifest.artefacts.pop(role)
+            manifest.artefacts.pop(role_of(f))
 
 
 def member_problem(first, other) -> str | None:
