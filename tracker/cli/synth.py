@@ -44,10 +44,6 @@ def add_synth(sub, REPO) -> None:
     s.add_argument("--lighting", choices=["camera", "overhead"], default="camera",
                    help="camera: 1-3 lights from the camera's side (as data made before); overhead: a strong "
                         "key light from above the table, a weak fill, little ambient (bright tops, dark sides)")
-    s.add_argument("--renderer", choices=["raster", "cycles"], default="raster",
-                   help="raster: pyrender draws every pixel; cycles: the targets' pixels path-traced by Blender's "
-                        "Cycles on the CPU (soft shading, self-shadowing), the same scenes and annotations "
-                        "(needs Blender: apt install blender; about 1-2 s an image more)")
     s.add_argument("--obj-ids", type=id_list, help="comma-separated subset of the models' ids")
     s.add_argument("--repeat-objects", action="store_true",
                    help="with fewer objects than an image holds (3-8): several instances of each object per "
@@ -79,8 +75,7 @@ def cmd_synth(args) -> int:
                       p_table=args.p_table, p_gloss=args.gloss, colour_jitter=args.colour_jitter,
                       camera_effects=args.camera_effects,
                       distractors=args.distractors, occluders_dir=args.occluders,
-                      lighting=args.lighting, repeat_objects=args.repeat_objects,
-                      renderer=args.renderer)
+                      lighting=args.lighting, repeat_objects=args.repeat_objects)
     rep = generate(cfg, args.out, args.images, workers=args.workers, command="app.py " + " ".join(sys.argv[1:]),
                    shard=args.shard)
     state = "INTERRUPTED after" if rep.interrupted else "wrote"

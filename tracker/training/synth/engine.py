@@ -48,7 +48,6 @@ HARD_DISTRACTORS_PER_IMAGE = (2, 8)
 DISTRACTOR_SETS = {"plain": (12, 0), "hard": (36, 0), "household": (18, 18)}
 DISTRACTOR_STYLES = tuple(DISTRACTOR_SETS)
 LIGHTING_STYLES = ("camera", "overhead")
-RENDERERS = ("raster", "cycles")
 PHOTO_DISTRACTORS = ("hard", "household")  # textured from the photos, tinted, 2-8 per image
 SHADOW_POINTS = 400  # about this many of an object's vertices outline its shadow (randomise.cast_shadows)
 
@@ -109,9 +108,6 @@ class SynthConfig:
     # scores the same on both renders of one split (docs/experiments/stop-47.md)
     mesh_faces: int | None = DEFAULT_MESH_FACES
     depth: bool = False  # write depth/NNNNNN.png (uint16, DEPTH_SCALE mm per unit), as BOP scenes have
-    # "raster": pyrender draws the image; "cycles": the targets' pixels path-traced by Blender's Cycles
-    # (synth.cycles: the same scenes, lights and annotations; needs Blender, apt install blender)
-    renderer: str = "raster"
 
 
 @dataclass
@@ -199,11 +195,7 @@ def _init_state(cfg_dict: dict, models: dict | None = None):
         crop=Renderer(cfg.crop_size, cfg.crop_size, targets),
         bgs=bgs,
         palette=target_palette([models[k].mesh for k in sorted(models)], np.random.default_rng([cfg.seed, 9])),
-        cycles=None,
     )
-    if cfg.renderer == "cycles":  # after the rest: a Blender that fails to start leaves nothing half made
-        from tracker.training.synth.cycles import CyclesRenderer
-        _W["cycles"] = CyclesRenderer(cfg.width, cfg.height, targets, threads=1)
 
 
 def _sample_instances(rng, cfg: SynthConfig):
@@ -273,10 +265,6 @@ def render_one(index: int, out_root: str) -> dict:
     crop_r.set_lights([((0.0, 0.0, 1.0), (1.0, 1.0, 1.0), 2.5)])  # neutral light for the targets
     crop_r.set_ambient(0.45)
     labels = scene.render_labels(K, inst)
-    if _W["cycles"] is not None:  # the targets' pixels path-traced, alone, in the same light
-        pbr, _ = _W["cycles"].render(K, inst[:n_t], lights, ambient)
-        front = (labels >= 0) & (labels < n_t)
-        rgb[front] = pbr[front]
     for k, vis in enumerate(scene_visibility(scene, crop_r, K, inst, _W["hull"], n_t, labels, keep_rgb=True)):
         oid, R, t = inst[k]
         jitter_colours(rgb, vis.mask_visib, vis.bbox_visib, rng, cfg.colour_jitter)
@@ -494,13 +482,6 @@ def generate(cfg: SynthConfig, out_dir, n_images: int, workers: int = 2, batch: 
         raise UserError(f"unknown distractor style '{cfg.distractors}' (choose from {', '.join(DISTRACTOR_STYLES)})")
     if cfg.lighting not in LIGHTING_STYLES:
         raise UserError(f"unknown lighting '{cfg.lighting}' (choose from {', '.join(LIGHTING_STYLES)})")
-    if cfg.renderer not in RENDERERS:
-        raise UserError(f"unknown renderer '{cfg.renderer}' (choose from {', '.join(RENDERERS)})")
-    if cfg.renderer == "cycles":
-        if cfg.p_gloss > 0:
-            raise UserError("--gloss draws the rasteriser's materials; with --renderer cycles use --gloss 0")
-        from tracker.training.synth.cycles import blender_executable
-        blender_executable()  # in the parent: no Blender is one line here, not a broken pool
     list_backgrounds(cfg.backgrounds_dir)  # fail early, in the parent (photos are decoded in the
     # workers: OpenCV's threads started here would hang forked workers)
     if cfg.occluders_dir:  # the ones the workers will draw, read and checked
