@@ -211,9 +211,8 @@ class Detector:
         self.fusion = None
         specs = [(self.spec, bundle.path("detector"))]
         if "fusion" in m.detector:
-            from tracker.runtime.fusion import Fusion
+            from tracker.runtime.fusion import Fusion, member_problem, role_of
             self.fusion = Fusion.from_dict(m.detector["fusion"], f"{bundle.root}/manifest.json")
-            from tracker.runtime.fusion import member_problem, role_of
             for d in self.fusion.members:
                 spec = DetectorSpec.from_dict(d)
                 if problem := member_problem(self.spec, spec):
@@ -246,9 +245,9 @@ class Detector:
         is defined on: every peak scoring at least ``CANDIDATE_SCORE``, up to
         ``CANDIDATE_PER_CLASS`` per object and ``CANDIDATE_MAX`` per image (pycocotools keeps
         100 per image), from the same network pass. A fused detector's: the clusters."""
-        h, w = image_rgb.shape[:2]
         if self.fusion is not None:
             return self._fused(image_rgb, candidates)
+        h, w = image_rgb.shape[:2]
         maps, lb = self.networks[0].maps(image_rgb)
         if not np.all(np.isfinite(maps)):
             return [], []  # NaN output: no detections rather than garbage boxes
