@@ -222,12 +222,14 @@ def add_commands(sub, REPO) -> None:
                                                 "fuses their detections (networks of other inputs too)")
     add_join(s, "bundle folder that gets the fused detector (its own is the first network)", "detectors_from",
              "bundles whose detectors (the same objects and kind of box) join")
-    s.add_argument("--score-thresh", type=fraction, default=0.20, metavar="T",
+    from tracker.runtime.fusion import Fusion
+    s.add_argument("--score-thresh", type=fraction, default=Fusion.score_thresh, metavar="T",
                    help="run-time threshold of a fused detection: the sum of the networks' scores over their "
-                        "number (default 0.20)")
-    s.add_argument("--iou", type=fraction, default=0.5, help="overlap at which detections join (default 0.5)")
-    s.add_argument("--floor", type=fraction, default=0.05,
-                   help="each network's lowest score that can join (default 0.05)")
+                        f"number (default {Fusion.score_thresh})")
+    s.add_argument("--iou", type=fraction, default=Fusion.iou,
+                   help=f"overlap at which detections join (default {Fusion.iou})")
+    s.add_argument("--floor", type=fraction, default=Fusion.floor,
+                   help=f"each network's lowest score that can join (default {Fusion.floor})")
     s.set_defaults(func=cmd_fuse_detectors)
 
     s = sub.add_parser("requantise-detector", help="quantise a bundle's int8 detector again from its float32 graph "

@@ -38,14 +38,20 @@ class Fusion:
                            for m in d["members"]):
             raise UserError(f"{where}: malformed detector fusion entry (needs 'members', each with 'file' and "
                             f"'classes'); rebuild it with 'app.py lab fuse-detectors'")
-        out = cls(members=list(d["members"]))
-        for key in ("iou", "floor", "score_thresh"):
-            if key in d:
-                v = d[key]
-                if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < 1:
-                    raise UserError(f"{where}: detector fusion '{key}' must lie between 0 and 1, not {v!r}")
-                setattr(out, key, float(v))
+        out = cls(members=list(d["members"]), **{k: d[k] for k in cls.SETTINGS if k in d})
+        if problem := out.problem():
+            raise UserError(f"{where}: {problem}")
         return out
+
+    SETTINGS = ("iou", "floor", "score_thresh")
+
+    def problem(self, name=lambda key: f"detector fusion '{key}'") -> str | None:
+        """What is wrong with the settings (None: nothing), each called by ``name(key)``."""
+        for key in self.SETTINGS:
+            v = getattr(self, key)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < 1:
+                return f"{name(key)} must lie between 0 and 1, not {v!r}"
+        return None
 
     def to_dict(self) -> dict:
         return {"members": self.members, "iou": self.iou, "floor": self.floor, "score_thresh": self.score_thresh,
@@ -73,6 +79,11 @@ def member_files(entry) -> list[str]:
     ms = f.get("members") if isinstance(f, dict) else None
     return [m["file"] for m in ms if isinstance(m, dict) and isinstance(m.get("file"), str)
             and role_of(m["file"]) is not None] if isinstance(ms, list) else []
+
+
+def member_artefacts(entry) -> dict[str, str]:
+    """The artefact roles of a detector entry's fused networks: {``detector_2``: ``detector_2.onnx``, ...}."""
+    return {role_of(f): f for f in member_files(entry)}
 
 
 def drop_members(manifest, folder) -> None:

@@ -534,7 +534,8 @@ def recipe_from_manifest(bundle_dir, log=None) -> Recipe:
         rec["names"] = {str(o.id): o.name for o in b.manifest.objects}
     det = b.manifest.detector or {}
     changed = changed_since_build(b.manifest)
-    fused = len(det["fusion"].get("members") or []) if isinstance(det.get("fusion"), dict) else 0
+    from tracker.runtime.fusion import member_files
+    fused = len(member_files(det))
     if log is not None and (det.get("provenance") or changed or fused):
         p = det.get("provenance") or {}
         why = f" ({p.get('note', p)})" if p else ""

@@ -13,7 +13,7 @@ from tracker.core.bundle import bundle_writer, sha256
 from tracker.core.errors import UserError
 from tracker.core.manifest import Manifest
 from tracker.runtime.detector import DetectorSpec, bundle_with_detector
-from tracker.runtime.fusion import Fusion, member_file, member_problem, role_of
+from tracker.runtime.fusion import Fusion, member_artefacts, member_file, member_problem
 
 
 def fuse_detectors(model_dir, others, out_dir=None, score_thresh: float = Fusion.score_thresh,
@@ -26,9 +26,9 @@ def fuse_detectors(model_dir, others, out_dir=None, score_thresh: float = Fusion
     others = list(others or [])
     if not others:
         raise UserError("nothing to fuse: name the bundles whose detectors join with --from")
-    for name, v in (("--score-thresh", score_thresh), ("--iou", iou), ("--floor", floor)):
-        if not 0 < v < 1:
-            raise UserError(f"{name} must lie between 0 and 1, not {v}")
+    settings = Fusion(members=[], iou=iou, floor=floor, score_thresh=score_thresh)
+    if problem := settings.problem(lambda key: "--" + key.replace("_", "-")):
+        raise UserError(problem)
     src = bundle_with_detector(model_dir)
     d0 = src.manifest.detector
     if "fusion" in d0:
@@ -44,8 +44,8 @@ def fuse_detectors(model_dir, others, out_dir=None, score_thresh: float = Fusion
             raise UserError(f"{o}: its detector cannot fuse with {model_dir}'s: {problem}")
         members.append((b, {**d, "file": member_file(k), "from": {"bundle": str(o), "detector_sha256":
                                                                   sha256(b.path("detector"))}}))
-    fusion = Fusion(members=[m for _, m in members], iou=float(iou), floor=float(floor),
-                    score_thresh=float(score_thresh)).to_dict()
+    settings.members = [m for _, m in members]
+    fusion = settings.to_dict()
     fusion.update(command=command or "app.py " + " ".join(sys.argv[1:]), created=time.strftime("%Y-%m-%d %H:%M:%S"))
     out = Path(out_dir) if out_dir else src.root
     with bundle_writer(src, out) as w:
@@ -53,7 +53,7 @@ def fuse_detectors(model_dir, others, out_dir=None, score_thresh: float = Fusion
         w.manifest.detector = {**d0, "fusion": fusion}
         for b, m in members:
             (w.folder / m["file"]).write_bytes(b.path("detector").read_bytes())
-            w.manifest.artefacts[role_of(m["file"])] = m["file"]
+        w.manifest.artefacts.update(member_artefacts(w.manifest.detector))
     log(f"bundle {out}: its detector fuses {1 + len(members)} networks (run-time threshold {score_thresh}, "
         f"clusters at IoU {iou}, candidates from {floor})")
     return w.manifest

@@ -462,7 +462,7 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
     if (out / "manifest.json").is_file():
         old = json.loads((out / "manifest.json").read_text())
         det = old.get("detector")
-        from tracker.runtime.fusion import member_files, role_of
+        from tracker.runtime.fusion import member_artefacts, member_files
         files = [det["file"], *member_files(det)] if isinstance(det, dict) and isinstance(det.get("file"), str) else []
         if files and sorted(det.get("classes", [])) == obj_ids and all((out / f).is_file() for f in files):
             kept_detector = (det, {f: (out / f).read_bytes() for f in files})  # a fused detector's networks too
@@ -532,7 +532,7 @@ def train_bundle(data_dir, out_dir, method: str = "cvam", size: int = 64, latent
                 (dest / f).write_bytes(blob)
             manifest.detector = det
             manifest.artefacts["detector"] = det["file"]
-            manifest.artefacts.update({role_of(f): f for f in member_files(det)})
+            manifest.artefacts.update(member_artefacts(det))
         return manifest
 
     from tracker.training.decimate import add_overlay_meshes
