@@ -5,7 +5,7 @@ import shutil
 import numpy as np
 import pytest
 
-from tracker.evaluation.detection_metrics import detection_ap
+from tracker.evaluation.detection_metrics import box_errors, detection_ap
 from tracker.runtime.detector import DetectorSpec, Letterbox, decode, letterbox, nms
 from tracker.core.geometry import iou_matrix
 from tracker.core.errors import UserError
@@ -827,3 +827,23 @@ def test_join_detectors_refuses_a_from_that_is_no_bundle(tiny_detector_bundle, t
     with pytest.raises(UserError, match=f"{tmp_path}: not a model bundle"):
         join_detectors(tiny_detector_bundle, [tmp_path], out_dir=tmp_path / "j", log=lambda *a: None)
     assert not (tmp_path / "j").exists()
+
+
+def test_box_errors_hand_cases():
+    """The right boxes' size and centre errors in the crop's terms, per object and over all."""
+    gt = [[(1, np.array([0, 0, 100, 50.])), (2, np.array([300, 300, 40, 40.]))],
+          [(1, np.array([200, 100, 100, 80.]))]]
+    dets = [[Detection(1, np.array([5, 0, 80, 40.]), 0.9),      # IoU 0.64, longer side 80 of 100, centre (5, 5) px off
+             Detection(2, np.array([100, 100, 40, 40.]), 0.8)],  # elsewhere: not right
+            [Detection(1, np.array([200, 100, 110, 80.]), 0.7),   # IoU 0.91, 110 of 100, centre 5 px off
+             Detection(1, np.array([201, 100, 100, 80.]), 0.6)]]  # the instance is taken: not counted again
+    r = box_errors(dets, gt, [1, 2])
+    one = r["per_object"][1]
+    assert one["n_gt"] == 2 and one["n_right"] == 2
+    assert one["side_log_ratio_mean"] == pytest.approx((np.log(0.8) + np.log(1.1)) / 2)
+    assert one["shift_median"] == pytest.approx((np.hypot(5, 5) / 100 + 0.05) / 2)
+    two = r["per_object"][2]
+    assert two["n_gt"] == 1 and two["n_right"] == 0 and two["side_log_ratio_mean"] is None
+    assert r["all"]["n_gt"] == 3 and r["all"]["n_right"] == 2
+    # a stricter IoU leaves only the tight box
+    assert box_errors(dets, gt, [1, 2], iou_min=0.7)["all"]["side_log_ratio_mean"] == pytest.approx(np.log(1.1))

@@ -55,10 +55,16 @@ def cmd_eval(args) -> int:
               f"(COCO: ranked candidates); as the loop runs it (one per object, manifest threshold): AP "
               f"{fmt_num(op['ap'])}, AP50 {fmt_num(op['ap50'])}, recall50 {fmt_num(op['recall50'])}; "
               f"{d['ms_per_image_median']:.1f} ms/image (median)")
-        print(f"{'obj':>5} {'AP':>6} {'AP50':>6} {'R50':>6}")
+        side = {int(k): v for k, v in d.get("box_errors", {}).get("per_object", {}).items()}
+        print(f"{'obj':>5} {'AP':>6} {'AP50':>6} {'R50':>6} {'side':>7}")
         for k, v in sorted(d["per_object"].items(), key=lambda kv: int(kv[0])):
             if v["n_gt"]:
-                print(f"{k:>5} {fmt_num(v['ap']):>6} {fmt_num(v['ap50']):>6} {fmt_num(v['recall50']):>6}")
+                s = side.get(int(k), {}).get("side_log_ratio_mean")
+                print(f"{k:>5} {fmt_num(v['ap']):>6} {fmt_num(v['ap50']):>6} {fmt_num(v['recall50']):>6} "
+                      f"{'-' if s is None else f'{s:+.3f}':>7}")
+        if side:
+            print("side: mean log ratio of the run-time boxes' longer side to the truth's, where they overlap it "
+                  "by IoU >= 0.5 (below 0: too short; the depth follows it)")
     print(f"visibility: {m['visibility_source']}\nwrote {args.json} and {m['bop_csv']}"
           + (f" and {args.per_instance}" if args.per_instance else ""))
     return 0

@@ -72,3 +72,48 @@ def detection_ap(detections, ground_truth, classes, ignore=None) -> dict:
     def mean(k):
         return float(np.mean([v[k] for v in have])) if have else None
     return {"ap": mean("ap"), "ap50": mean("ap50"), "recall50": mean("recall50"), "per_object": per}
+
+
+def box_errors(detections, ground_truth, classes, iou_min: float = 0.5) -> dict:
+    """How the right boxes among ``detections`` (those overlapping an instance of their object
+    in their image by IoU >= ``iou_min``; each instance matched once, best score first) differ
+    from the truth, in the pose crop's terms (a square of the box's longer side about its
+    centre): ``side_log_ratio`` = log(longer side / the truth's), below 0 when boxes are too
+    short (the depth from a box follows it); ``shift`` = the centre's distance from the truth's
+    over the truth's longer side. Per object (by obj_id) and over all right boxes ("all"):
+    ``n_gt``, ``n_right``, ``iou_median``, ``side_log_ratio_mean``, ``side_log_ratio_median``,
+    ``side_log_ratio_sd``, ``shift_median``; None where no box is right. Inputs as for
+    :func:`detection_ap` (meant for the run-time detections: one per object)."""
+    rows = {int(c): [] for c in classes}
+    n_gt = {int(c): 0 for c in classes}
+    for dets, gts in zip(detections, ground_truth):
+        for c in rows:
+            gt = np.array([b for o, b in gts if o == c], float).reshape(-1, 4)
+            n_gt[c] += len(gt)
+            used = np.zeros(len(gt), bool)
+            for d in sorted((d for d in dets if d.obj_id == c), key=lambda d: -d.score):
+                if not len(gt):
+                    break
+                b = np.asarray(d.box, float)
+                ious = np.where(used, -1.0, iou_matrix(b[None], gt)[0])
+                k = int(ious.argmax())
+                if ious[k] < iou_min:
+                    continue
+                used[k] = True
+                g = gt[k]
+                side_g = max(g[2], g[3])
+                shift = np.hypot(b[0] + b[2] / 2 - g[0] - g[2] / 2, b[1] + b[3] / 2 - g[1] - g[3] / 2) / side_g
+                rows[c].append((float(ious[k]), float(np.log(max(b[2], b[3]) / side_g)), float(shift)))
+
+    def stats(r, n) -> dict:
+        a = np.array(r, float).reshape(-1, 3)
+        some = len(a) > 0
+        return {"n_gt": int(n), "n_right": len(a),
+                "iou_median": float(np.median(a[:, 0])) if some else None,
+                "side_log_ratio_mean": float(a[:, 1].mean()) if some else None,
+                "side_log_ratio_median": float(np.median(a[:, 1])) if some else None,
+                "side_log_ratio_sd": float(a[:, 1].std()) if some else None,
+                "shift_median": float(np.median(a[:, 2])) if some else None}
+    out = {"per_object": {c: stats(rows[c], n_gt[c]) for c in rows}, "iou_min": iou_min}
+    out["all"] = stats([x for r in rows.values() for x in r], sum(n_gt.values()))
+    return out

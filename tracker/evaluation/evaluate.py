@@ -117,7 +117,7 @@ def evaluate(model_dir, scene_dir, json_path=None, boxes: str = "gt", mode: str 
         write_per_instance(per_instance, per_instance_rows(records))
         m["per_instance"] = str(per_instance)
     if detector is not None:
-        from tracker.evaluation.detection_metrics import detection_ap
+        from tracker.evaluation.detection_metrics import box_errors, detection_ap
         gts = [[(o, b) for o, b, _ in gt_instances_with_boxes(scene.gt[i], box_of[i], 0.1) if o in ours]
                for i in im_ids]
         ign = [[(o, b) for o, b, _ in gt_instances_with_boxes(scene.gt[i], box_of[i], 0.1, below=True) if o in ours]
@@ -129,6 +129,7 @@ def evaluate(model_dir, scene_dir, json_path=None, boxes: str = "gt", mode: str 
         m["detection"]["protocol"] = (f"coco: candidates scoring >= {CANDIDATE_SCORE}, at most {CANDIDATE_PER_CLASS} "
                                       f"per object and {CANDIDATE_MAX} per image")
         m["detection"]["operating_point"] = detection_ap(all_dets, gts, est.obj_ids, ignore=ign)
+        m["detection"]["box_errors"] = box_errors(all_dets, gts, est.obj_ids)
         m["detection"]["ms_per_image_median"] = float(np.median(det_ms))
         m["detection"]["candidates"] = {"per_object": detector.spec.candidates, "floor": detector.spec.candidate_floor}
         m["detection"]["visibility_source"] = m.get("visibility_source")
