@@ -95,6 +95,8 @@ def box_errors(detections, ground_truth, classes, iou_min: float = 0.5) -> dict:
                 if not len(gt):
                     break
                 b = np.asarray(d.box, float)
+                if not (b[2] > 0 and b[3] > 0):
+                    continue  # a degenerate box overlaps nothing
                 ious = np.where(used, -1.0, iou_matrix(b[None], gt)[0])
                 k = int(ious.argmax())
                 if ious[k] < iou_min:
