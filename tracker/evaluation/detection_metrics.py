@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from tracker.core.geometry import iou_matrix
+from tracker.core.geometry import iou_matrix, square_crop
 
 IOU_THRESHOLDS = np.round(np.arange(0.5, 0.951, 0.05), 2)
 RECALL_POINTS = np.linspace(0, 1, 101)
@@ -102,10 +102,9 @@ def box_errors(detections, ground_truth, classes, iou_min: float = 0.5) -> dict:
                 if ious[k] < iou_min:
                     continue
                 used[k] = True
-                g = gt[k]
-                side_g = max(g[2], g[3])
-                shift = np.hypot(b[0] + b[2] / 2 - g[0] - g[2] / 2, b[1] + b[3] / 2 - g[1] - g[3] / 2) / side_g
-                rows[c].append((float(ious[k]), float(np.log(max(b[2], b[3]) / side_g)), float(shift)))
+                cd, cg = square_crop(b, 1), square_crop(gt[k], 1)  # the pose crops of both boxes
+                shift = np.hypot(cd.x0 + cd.side / 2 - cg.x0 - cg.side / 2, cd.y0 + cd.side / 2 - cg.y0 - cg.side / 2)
+                rows[c].append((float(ious[k]), float(np.log(cd.side / cg.side)), float(shift / cg.side)))
 
     def stats(r, n) -> dict:
         a = np.array(r, float).reshape(-1, 3)
