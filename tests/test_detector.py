@@ -74,26 +74,6 @@ def test_decode_threshold_nms_and_one_per_class():
     assert [round(d.score, 3) for d in decode(m, spec) if d.obj_id == 1] == [0.9, 0.8]
 
 
-def test_box_targets_at_the_centre_cell_or_over_the_core():
-    from tracker.training.detector_train import draw_targets
-    big, small = (0, 16.0, 24.0, 96.0, 64.0), (1, 68.0, 38.0, 24.0, 20.0)  # class, x, y, w, h; stride 8
-    hm, reg, w = draw_targets([[big, small]], 2, 20, 15, 8)
-    assert w.sum() == 2 and w[0, 0, 7, 8] == 1 and w[0, 0, 6, 10] == 1  # the two centre cells only
-    np.testing.assert_allclose(reg[0, :, 7, 8], [np.log(12), np.log(8), 0.0, 0.0], atol=1e-6)
-    hm, reg, w = draw_targets([[big, small]], 2, 20, 15, 8, box_area=0.54)
-    assert (w > 0).sum() > 20 and w[0, 0, 7, 8] == 1 and w[0, 0, 6, 10] == 1 and w.max() == 1
-    ys, xs = np.nonzero(w[0, 0])
-    # every taught cell points at a centre: its own position plus its offset, times the stride
-    cx, cy = (xs + reg[0, 2, ys, xs]) * 8, (ys + reg[0, 3, ys, xs]) * 8
-    at_big = np.isclose(cx, 64) & np.isclose(cy, 56)
-    at_small = np.isclose(cx, 80) & np.isclose(cy, 48)
-    assert (at_big | at_small).all() and at_big.sum() > 10 and at_small.sum() == 4  # inside the big core: the small's
-    np.testing.assert_allclose(np.exp(reg[0, 0, ys[at_small], xs[at_small]]) * 8, 24, rtol=1e-5)
-    assert np.abs(reg[0, 2:, ys, xs]).max() > 1  # offsets of off-centre cells leave [0, 1]
-    # the big object's core stops at 0.54 of its width about its centre: 26 pixels, 3 cells each side
-    assert not (w[0, 0, 7, :4] > 0).any() and not (w[0, 0, 7, 13:] > 0).any()
-
-
 def test_nms_and_iou():
     boxes = np.array([[0, 0, 10, 10], [1, 1, 10, 10], [50, 50, 10, 10]], float)
     assert iou_matrix(boxes[:1], boxes[1:2])[0, 0] == pytest.approx(81 / 119)
@@ -416,12 +396,6 @@ def test_a_run_resumes_only_with_its_own_options(tiny_detector_bundle, tiny_bund
                        log=lambda *a: None)
     with pytest.raises(UserError, match=r"--colour must be one of"):
         train_detector(tiny_bundle.parent / "split", root, max_steps=10, width=8, batch=2, colour="vivid",
-                       log=lambda *a: None)
-    with pytest.raises(UserError, match=r"with --box-area 0\.0: rerun"):
-        train_detector(tiny_bundle.parent / "split", root, max_steps=10, width=8, batch=2, box_area=0.54,
-                       log=lambda *a: None)
-    with pytest.raises(UserError, match=r"--box-area is a share"):
-        train_detector(tiny_bundle.parent / "split", root, max_steps=10, width=8, batch=2, box_area=1.5,
                        log=lambda *a: None)
     _write_cutouts(tmp_path / "cut")
     with pytest.raises(UserError, match=r"with no --cutouts: rerun"):

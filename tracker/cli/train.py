@@ -118,10 +118,6 @@ def add_train_detector(sub, REPO) -> None:
                    help="with --backbone nanodet: keep the COCO backbone's weights from its stem through this "
                         "stage (stem, stage1 .. stage4; stage2: stride 8, stage3: stride 16; no backward pass "
                         "through it) and train the rest")
-    s.add_argument("--box-area", type=float, default=0.0, metavar="A",
-                   help="the box head also learns at every cell of each object's core (the box shrunk to A of "
-                        "its width and height about its centre, weighted by the centre heatmap), not only at its "
-                        "centre cell (TTFNet: 0.54; default 0: the centre cell only)")
     s.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto",
                    help="where the detector trains: a CUDA GPU where torch sees one (auto), or the CPU")
     add_precision(s)
@@ -137,7 +133,7 @@ def cmd_train_detector(args) -> int:
                        cutouts=args.cutouts, cutout_share=args.cutout_share,
                        precision=args.precision, box_kind=args.boxes, colour=args.colour, ema=args.ema,
                        backbone=args.backbone, pretrained=not args.no_pretrained, device=args.device,
-                       freeze_through=args.freeze_through, box_area=args.box_area, command="app.py " + " ".join(sys.argv[1:]))
+                       freeze_through=args.freeze_through, command="app.py " + " ".join(sys.argv[1:]))
     if d is None:  # a helper process of a torchrun job: the first process writes the bundle
         return 0
     v = d["training"]["validation_synthetic"]

@@ -36,7 +36,7 @@ CUTOUT_SHARE = 0.5     # share of training images that get cut-outs when --cutou
 # recipe keys added after checkpoints were first written, at the value a run without them records
 RECIPE_ADDED = {"cutouts": None, "cutout_share": 0.0, "boxes": "visible", "frozen_batchnorm": False,
                 "colour": "standard", "ema": 0.0, "backbone": "plain", "pretrained": False,
-                "freeze_through": None, "box_area": 0.0}
+                "freeze_through": None}
 COLOUR_AUGS = ("standard", "strong", "mild")
 
 
@@ -95,23 +95,15 @@ def load_detection_set(split_dir, spec: DetectorSpec, cache: Path | None = None,
     return images, boxes
 
 
-def draw_targets(boxes_list, n_classes: int, out_w: int, out_h: int, stride: int, box_area: float = 0.0):
+def draw_targets(boxes_list, n_classes: int, out_w: int, out_h: int, stride: int):
     """CenterNet targets at ``stride``: Gaussian centre heatmaps (elliptical, sigma = 0.54 x
-    box size / 6, as TTFNet), and at each centre cell log size and sub-cell offset, with weight 1
-    in the returned weights map. ``box_area`` > 0 (TTFNet's dense box targets): also at every cell
-    whose centre lies inside the box shrunk to ``box_area`` of its width and height about its
-    centre, weighted by the Gaussian there, the offset being that cell's to the centre (it may
-    then lie outside [0, 1]); where two objects' cores overlap, the smaller object's (an object's
-    centre cell stays its own)."""
+    box size / 6, as TTFNet), and at each centre cell log size and sub-cell offset."""
     B = len(boxes_list)
     hm = np.zeros((B, n_classes, out_h, out_w), np.float32)
     reg = np.zeros((B, 4, out_h, out_w), np.float32)
     mask = np.zeros((B, 1, out_h, out_w), np.float32)
     ys, xs = np.mgrid[0:out_h, 0:out_w].astype(np.float32)
-    centres = []
     for i, boxes in enumerate(boxes_list):
-        if box_area > 0:  # larger objects first, so the smaller one's targets win where cores overlap
-            boxes = sorted(boxes, key=lambda b: -b[3] * b[4])
         for c, x, y, w, h in boxes:
             cx, cy = (x + w / 2) / stride, (y + h / 2) / stride
             ix, iy = int(cx), int(cy)
@@ -121,17 +113,8 @@ def draw_targets(boxes_list, n_classes: int, out_w: int, out_h: int, stride: int
             g = np.exp(-((xs - ix) ** 2 / (2 * sx * sx) + (ys - iy) ** 2 / (2 * sy * sy)))
             hm[i, int(c)] = np.maximum(hm[i, int(c)], g)
             hm[i, int(c), iy, ix] = 1.0
-            if box_area > 0:
-                core = ((np.abs(xs + 0.5 - cx) <= box_area * w / (2 * stride))
-                        & (np.abs(ys + 0.5 - cy) <= box_area * h / (2 * stride)))
-                core[iy, ix] = True
-                reg[i, 0][core], reg[i, 1][core] = math.log(w / stride), math.log(h / stride)
-                reg[i, 2][core], reg[i, 3][core] = cx - xs[core], cy - ys[core]
-                mask[i, 0][core] = g[core]
-            centres.append((i, ix, iy, (math.log(w / stride), math.log(h / stride), cx - ix, cy - iy)))
-    for i, ix, iy, target in centres:  # an object's centre cell is its own, whatever core covers it
-        reg[i, :, iy, ix] = target
-        mask[i, 0, iy, ix] = 1.0
+            reg[i, :, iy, ix] = (math.log(w / stride), math.log(h / stride), cx - ix, cy - iy)
+            mask[i, 0, iy, ix] = 1.0
     return hm, reg, mask
 
 
@@ -479,8 +462,7 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
                    command: str | None = None, precision: str = "auto", box_kind: str = "visible",
                    colour: str = "standard", ema: float = 0.0, backbone: str = "plain",
                    pretrained: bool = True, device: str = "cpu", stage_minutes: float | None = None,
-                   max_steps: int | None = None, freeze_through: str | None = None,
-                   box_area: float = 0.0) -> dict:
+                   max_steps: int | None = None, freeze_through: str | None = None) -> dict:
     """``stage_minutes``: the whole call's budget (``build``): training gets ``minutes`` or what
     is left of it after loading the images, less :data:`AFTER_MINUTES` for validation and
     export. ``backbone``: ``plain`` (:class:`CenterNetLite` from random weights) or an
@@ -495,8 +477,7 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     seed gives the same network on any machine. ``freeze_through`` (``nanodet`` only): the
     COCO backbone from its stem through this stage (``stage2``: stride 8, ``stage3``: 16) keeps
     its weights: no gradients, no backward pass through it; the later stages, the neck and the
-    heads train. ``box_area`` > 0: the box head learns at every cell of each object's core, not
-    only at its centre cell (:func:`draw_targets`; TTFNet's 0.54).
+    heads train.
 
     Under ``torchrun --nproc_per_node N`` (DistributedDataParallel: gloo on CPUs, NCCL on GPUs)
     the N processes share every batch; the first one validates, exports and writes the bundle
@@ -518,8 +499,6 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
                             "(and its weights, not --no-pretrained)")
         if freeze_through not in Backbone.STAGES:
             raise UserError(f"--freeze-through must be one of {', '.join(Backbone.STAGES)}, not '{freeze_through}'")
-    if not 0.0 <= box_area <= 1.0:
-        raise UserError(f"--box-area is a share of the box's width and height in [0, 1] (0: the centre cell only), not {box_area}")
     if max_steps is not None and not (isinstance(max_steps, int) and max_steps >= 1):
         raise UserError(f"the step budget must be a whole number of at least 1, not {max_steps}")
     if not 0.0 <= ema < 1.0:
@@ -590,7 +569,7 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     recipe = {"batch": batch, "lr": lr, "seed": seed, "occlusion": occlusion, "paste_objects": paste_objects,
               **RECIPE_ADDED, "boxes": box_kind, "frozen_batchnorm": frozen, "colour": colour, "ema": ema,
               "backbone": backbone, "pretrained": pretrained if backbone != "plain" else False,
-              "freeze_through": freeze_through, "box_area": box_area}
+              "freeze_through": freeze_through}
     if cutouts:
         recipe.update(cutouts=cutout_set, cutout_share=CUTOUT_SHARE if cutout_share is None else cutout_share)
     if ckpt.is_file():
@@ -681,7 +660,7 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
             x = torch.from_numpy(images[idx]).permute(0, 3, 1, 2).float().div_(255)
             x, bl = augment_batch(x, [boxes[i] for i in idx], b_rng, torch, occlusion, paste_objects,
                                   cutout_images, recipe["cutout_share"], colour)
-            hm_t, reg_t, mask_t = (torch.from_numpy(a).to(device) for a in draw_targets(bl, C, ow, oh, S, box_area))
+            hm_t, reg_t, mask_t = (torch.from_numpy(a).to(device) for a in draw_targets(bl, C, ow, oh, S))
             with prec.autocast(precision, device):
                 hm, reg = net(prec.channels_last(((x - spec.mean) / spec.std).to(device)))
             hm, reg = hm.float(), reg.float()
