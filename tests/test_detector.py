@@ -398,7 +398,7 @@ def test_known_boxes_are_cut_by_the_known_objects_only():
 
         def render_labels(self, K, instances):
             lab = np.full((40, 60), -1, np.int32)
-            for j, (oid, R, t) in enumerate(instances):
+            for j, (oid, _R, _t) in enumerate(instances):
                 x, y, w, h = self.rects[oid]
                 lab[y:y + h, x:x + w] = j
             return lab
