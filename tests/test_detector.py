@@ -366,13 +366,7 @@ def test_amodal_targets_are_whole_silhouettes_clipped_to_the_image(tiny_bundle, 
     _, am = load_detection_set(split, DetectorSpec(classes=classes, boxes="amodal"), max_images=3, log=lambda *a: None)
     v, a = np.concatenate(vis), np.concatenate(am)
     assert len(v) == len(a) and np.all(a[:, 3] * a[:, 4] >= v[:, 3] * v[:, 4] - 1e-3)
-    _, kn = load_detection_set(split, DetectorSpec(classes=classes, boxes="known"), max_images=3,
-                               log=lambda *a: None, meshes_dir=tiny_bundle / "meshes")
-    k = np.concatenate(kn)
-    assert len(k) == len(v) and np.all(k[:, 0] == v[:, 0])
-    area = lambda b: b[:, 3] * b[:, 4]  # noqa: E731
-    assert np.all(area(k) >= area(v) - 1e-3) and np.all(area(k) <= area(a) + 1e-3)
-    with pytest.raises(UserError, match="--boxes must be one of visible, amodal, known"):
+    with pytest.raises(UserError, match="--boxes must be one of visible, amodal"):
         train_detector(split, tiny_bundle, max_steps=5, box_kind="whole")
     pytest.importorskip("torch")
     quiet = dict(log=lambda *a: None)
@@ -384,31 +378,6 @@ def test_amodal_targets_are_whole_silhouettes_clipped_to_the_image(tiny_bundle, 
     assert open_bundle(a_dir).manifest.detector["boxes"] == "amodal"
     with pytest.raises(UserError, match="differs from .* in boxes"):
         join_detectors(v_dir, [a_dir], out_dir=tmp_path / "j", **quiet)
-
-
-def test_known_boxes_are_cut_by_the_known_objects_only():
-    """Two instances side by side, a third (an object the bundle does not know) in front of the
-    first: the first's known box is cut where the second hides it, not where the unknown one does."""
-    from types import SimpleNamespace
-
-    from tracker.training.detector_train import known_boxes, target_box
-
-    class Labels:  # paints each instance's rectangle in order, later ones in front
-        rects = {1: (10, 10, 30, 20), 5: (30, 10, 20, 20), 99: (0, 0, 25, 40)}
-
-        def render_labels(self, K, instances):
-            lab = np.full((40, 60), -1, np.int32)
-            for j, (oid, _R, _t) in enumerate(instances):
-                x, y, w, h = self.rects[oid]
-                lab[y:y + h, x:x + w] = j
-            return lab
-    g = [SimpleNamespace(obj_id=o, R=None, t=None) for o in (1, 5, 99)]
-    scene = SimpleNamespace(gt={7: g}, K=lambda i: None)
-    kb = known_boxes(Labels(), scene, 7, known={1, 5})
-    assert kb == [[10, 10, 20, 20], [30, 10, 20, 20], [-1, -1, -1, -1]]
-    info = {"bbox_visib": [25, 10, 5, 20], "bbox_obj": [10, 10, 30, 20]}  # what the render with clutter saw
-    assert target_box(info, "known", 60, 40, kb[0]) == [10, 10, 20, 20]
-    assert target_box(info, "known", 60, 40, [-1, -1, -1, -1]) == [25, 10, 5, 20]
 
 
 def test_a_run_resumes_only_with_its_own_options(tiny_detector_bundle, tiny_bundle, tmp_path):

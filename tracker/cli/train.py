@@ -87,10 +87,9 @@ def add_train_detector(sub, REPO) -> None:
                    help="start from another run's detector_ckpt_*.pt (same width and classes), e.g. to fine-tune on "
                         "new data, or from a bundle whose detector is one float network (its weights read back from "
                         "the ONNX graph; its BatchNorms then stay frozen)")
-    s.add_argument("--boxes", choices=("visible", "amodal", "known"), default="visible",
-                   help="what the boxes cover: the visible part of each object, its whole silhouette clipped "
-                        "to the image (amodal: size and centre follow the object behind occluders), or the part "
-                        "no other of the objects hides (known: clutter hides nothing, as in LM-O's ground truth)")
+    s.add_argument("--boxes", choices=("visible", "amodal"), default="visible",
+                   help="what the boxes cover: the visible part of each object, or its whole silhouette clipped "
+                        "to the image (amodal: size and centre follow the object behind occluders)")
     s.add_argument("--occlusion", type=fraction, default=0.0, metavar="P",
                    help="share of training images that get clutter pasted over them (occlusion augmentation)")
     s.add_argument("--paste-objects", type=fraction, default=0.0, metavar="P",

@@ -26,7 +26,7 @@ CANDIDATE_PER_CLASS = 10
 CANDIDATE_MAX = 100
 
 
-BOX_KINDS = ("visible", "amodal", "known")  # what a detector's boxes cover (DetectorSpec.boxes)
+BOX_KINDS = ("visible", "amodal")  # what a detector's boxes cover (DetectorSpec.boxes)
 
 
 @dataclass
@@ -43,8 +43,7 @@ class DetectorSpec:
     max_dets: int = 32
     pad_value: int = 114
     file: str = "detector.onnx"
-    boxes: str = "visible"           # what a box covers: the visible part, the whole object ("amodal"), or
-                                     # the part no other known object hides ("known": what LM-O's truth draws)
+    boxes: str = "visible"           # what a box covers: the visible part, or the whole object ("amodal")
     # verified candidates (with max_per_class 1): an object whose best peak reaches score_thresh
     # comes with up to `candidates` boxes (class-wise NMS, each scoring >= candidate_floor); the
     # pose pipeline poses them all and keeps the most confident (PoseEstimator.estimate)

@@ -40,43 +40,24 @@ RECIPE_ADDED = {"cutouts": None, "cutout_share": 0.0, "boxes": "visible", "froze
 COLOUR_AUGS = ("standard", "strong", "mild")
 
 
-def target_box(info: dict, kind: str, width: int, height: int, known_box=None) -> list[float]:
+def target_box(info: dict, kind: str, width: int, height: int) -> list[float]:
     """An instance's training box (x, y, w, h) from its ``scene_gt_info`` entry: the visible
-    box, or (``amodal``) the whole silhouette's clipped to the image, or (``known``) ``known_box``,
-    the box of its pixels no other labelled instance hides (``known_boxes``), each joined with
-    the visible box (the silhouette is rendered in a window of its own, a pixel or two off at
-    times)."""
+    box, or (``amodal``) the whole silhouette's clipped to the image (with the visible box in
+    it: the silhouette is rendered in a window of its own, a pixel or two off at times)."""
     if kind == "visible":
         return list(info["bbox_visib"])
-    (x, y, w, h), (vx, vy, vw, vh) = info["bbox_obj"] if kind == "amodal" else known_box, info["bbox_visib"]
-    if w <= 0:  # (a known box with no pixels: the label render missed a sliver)
-        return list(info["bbox_visib"])
+    (x, y, w, h), (vx, vy, vw, vh) = info["bbox_obj"], info["bbox_visib"]
     x0, y0 = max(min(x, vx), 0), max(min(y, vy), 0)
     return [x0, y0, min(max(x + w, vx + vw), width) - x0, min(max(y + h, vy + vh), height) - y0]
 
 
-def known_boxes(renderer, scene, im_id: int, known: set) -> list[list[int]]:
-    """Per ground-truth instance of ``im_id``, the box (x, y, w, h; [-1] * 4 if none) of the
-    pixels where no other instance of a ``known`` object is in front: one label render of the
-    ground truth alone. What a scene without depth (LM-O's) calls visible: clutter that is not
-    one of the objects hides nothing."""
-    gts = scene.gt[im_id]
-    drawn = [k for k, g in enumerate(gts) if g.obj_id in known]
-    labels = renderer.render_labels(scene.K(im_id), [(gts[k].obj_id, gts[k].R, gts[k].t) for k in drawn])
-    out = [[-1, -1, -1, -1]] * len(gts)
-    for j, k in enumerate(drawn):
-        out[k] = mask_box(labels == j)
-    return out
-
-
 def load_detection_set(split_dir, spec: DetectorSpec, cache: Path | None = None, max_images=None, log=print,
-                       fingerprint: str | None = None, meshes_dir=None):
+                       fingerprint: str | None = None):
     """Letterboxed images (N, H, W, 3) uint8 and per image an (n, 5) array [class, x, y, w, h]
-    of the boxes ``spec.boxes`` names (visible, amodal or known; instances with visib >= 0.1) in
+    of the boxes ``spec.boxes`` names (visible or amodal; instances with visib >= 0.1) in
     network-input pixels. ``cache`` holds them with the split's fingerprint: a split rendered
     again since is cut again (a cache written before the fingerprint was kept is trusted).
-    ``fingerprint``: the split's, when the caller has it already. ``meshes_dir``: the objects'
-    meshes (``known`` boxes only: the spec's classes are the known objects)."""
+    ``fingerprint``: the split's, when the caller has it already."""
     split = fingerprint or split_fingerprint(split_dir)
     if cache is not None and cache.is_file():
         with np.load(cache, allow_pickle=False) as z:
@@ -88,39 +69,23 @@ def load_detection_set(split_dir, spec: DetectorSpec, cache: Path | None = None,
     lut = {c: i for i, c in enumerate(spec.classes)}
     imgs, boxes = [], []
     scenes = split_scene_dirs(split_dir)
-    renderers, models = {}, None
-    if spec.boxes == "known":
-        from tracker.core.meshes import load_models
-        models = {k: m.mesh for k, m in load_models(meshes_dir, spec.classes).items()}
     total = sum(len(json.loads((s / "scene_camera.json").read_text())) for s in scenes)
     total = min(total, max_images or total)
-    try:
-        for sdir in scenes:
+    for sdir in scenes:
+        if len(imgs) >= total:
+            break
+        scene = load_scene(sdir, require_gt=True)
+        for im_id in tqdm(scene.im_ids, desc=f"images {sdir.name}", unit="img", leave=False):
             if len(imgs) >= total:
                 break
-            scene = load_scene(sdir, require_gt=True)
-            for im_id in tqdm(scene.im_ids, desc=f"images {sdir.name}", unit="img", leave=False):
-                if len(imgs) >= total:
-                    break
-                rgb = scene.read_rgb(im_id)
-                img, lb = letterbox(rgb, spec.input_w, spec.input_h, spec.pad_value)
-                known = [None] * len(scene.gt[im_id])
-                if models is not None:
-                    size = rgb.shape[1], rgb.shape[0]
-                    if size not in renderers:
-                        from tracker.runtime.render import Renderer
-                        renderers[size] = Renderer(*size, models)
-                    known = known_boxes(renderers[size], scene, im_id, set(lut))
-                b = [[lut[g.obj_id], *target_box(g.info, spec.boxes, rgb.shape[1], rgb.shape[0], kb)]
-                     for g, kb in zip(scene.gt[im_id], known)
-                     if g.obj_id in lut and g.info.get("visib_fract", 0) >= MIN_VISIB and g.info["bbox_visib"][2] > 1]
-                b = np.array(b, np.float32).reshape(-1, 5)
-                b[:, 1:] = lb.to_input(b[:, 1:])
-                imgs.append(img)
-                boxes.append(b)
-    finally:
-        for r in renderers.values():
-            r.close()
+            rgb = scene.read_rgb(im_id)
+            img, lb = letterbox(rgb, spec.input_w, spec.input_h, spec.pad_value)
+            b = [[lut[g.obj_id], *target_box(g.info, spec.boxes, rgb.shape[1], rgb.shape[0])] for g in scene.gt[im_id]
+                 if g.obj_id in lut and g.info.get("visib_fract", 0) >= MIN_VISIB and g.info["bbox_visib"][2] > 1]
+            b = np.array(b, np.float32).reshape(-1, 5)
+            b[:, 1:] = lb.to_input(b[:, 1:])
+            imgs.append(img)
+            boxes.append(b)
     if not imgs:
         raise UserError(f"{split_dir}: no images")
     images = np.stack(imgs)
@@ -504,8 +469,7 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     EfficientNet-Lite trunk (``lite0``..``lite2``, ImageNet weights unless ``pretrained`` is
     False; BatchNorm frozen; the spec's normalisation becomes the weights'). ``box_kind``: the targets are the objects' visible boxes, or their whole silhouettes'
     (``amodal``, clipped to the image: a box's size and centre then follow the object's
-    distance and position behind whatever hides part of it), or the part of each that no other
-    of the objects hides (``known``: clutter hides nothing, as in LM-O's ground truth). ``ema`` > 0: validate and export
+    distance and position behind whatever hides part of it). ``ema`` > 0: validate and export
     the exponential moving average of the weights with this decay (``ema_update``), not the
     last weights. ``max_steps``: a budget of training steps (the resumed run's included) instead
     of time: training ends after that many, however long they take (``minutes`` and
@@ -578,8 +542,7 @@ def train_detector(data_dir, bundle_dir, minutes: float = 60.0, width: int = 32,
     data_print = split_fingerprint(data_dir)  # the key has the split's folder; this, what it holds
     # the first process cuts and caches the set, the others read it
     images, boxes = dd.first_then_rest(lambda: load_detection_set(data_dir, spec, cache, max_images, log,
-                                                                     fingerprint=data_print,
-                                                                     meshes_dir=bundle.root / "meshes"))
+                                                                     fingerprint=data_print))
     n = len(images)
     if stage_minutes is not None:
         minutes = min(minutes, max(0.05, stage_minutes - (time.perf_counter() - t0) / 60 - AFTER_MINUTES))
